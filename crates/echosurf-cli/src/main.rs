@@ -1,0 +1,73 @@
+//! `echosurf`: the command-line face of the echosurf library. Each subcommand lives in `cmd/` and only
+//! parses arguments, calls the library and prints; all the work is in the library.
+
+mod cmd;
+mod progress;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// Direct surface extraction from tracked freehand 3D ultrasound.
+#[derive(Debug, Parser)]
+#[command(name = "echosurf", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Summarise a tracked sequence: frames, poses, sweeps, bounds.
+    Inspect(cmd::inspect::Args),
+    /// Simulate tracked B-mode sweeps of a phantom, with ground truth.
+    Simulate(cmd::simulate::Args),
+    /// Segment a band of pixels around the boundary in every frame.
+    Segment(cmd::segment::Args),
+    /// Fit a biharmonic RBF to a point cloud with intensities.
+    Fit(cmd::fit::Args),
+    /// Evaluate a fitted RBF model (values and gradients) at points.
+    Eval(cmd::eval::Args),
+    /// Extract iso-surfaces of a fitted RBF model.
+    Surface(cmd::surface::Args),
+    /// The whole pipeline: sequence -> mesh.
+    Extract(cmd::extract::Args),
+    /// Write the samples the fit would see as a point cloud.
+    Sample(cmd::sample::Args),
+    /// Score a mesh against a ground-truth mesh.
+    Compare(cmd::compare::Args),
+    /// Render a mesh to a PNG preview.
+    Render(cmd::render::Args),
+    /// Reconstruct a voxel volume from a tracked sequence (the PLUS route).
+    Reconstruct(cmd::reconstruct::Args),
+    /// Benchmarks: direct RBF route against the voxel route, fit scaling.
+    Bench(cmd::bench::Args),
+    /// Simulate the duck, extract, compare with truth, render, and summarise.
+    Demo(cmd::demo::Args),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Inspect(a) => cmd::inspect::run(a),
+        Command::Simulate(a) => cmd::simulate::run(a),
+        Command::Segment(a) => cmd::segment::run(a),
+        Command::Fit(a) => cmd::fit::run(a),
+        Command::Eval(a) => cmd::eval::run(a),
+        Command::Surface(a) => cmd::surface::run(a),
+        Command::Extract(a) => cmd::extract::run(a),
+        Command::Sample(a) => cmd::sample::run(a),
+        Command::Compare(a) => cmd::compare::run(a),
+        Command::Render(a) => cmd::render::run(a),
+        Command::Reconstruct(a) => cmd::reconstruct::run(a),
+        Command::Bench(a) => cmd::bench::run(a),
+        Command::Demo(a) => cmd::demo::run(a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,1 @@
+//! Mesh-to-mesh surface distances and topology checks for scoring against ground truth.

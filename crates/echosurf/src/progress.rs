@@ -1,0 +1,21 @@
+//! Progress reporting from long library stages without tying the library to a terminal.
+
+/// Receives progress from a long stage. The CLI maps it onto indicatif bars; tests ignore it.
+pub trait Progress: Sync {
+    /// A stage named `stage` starts; `total` units of work are expected (0 if unknown).
+    fn start(&self, stage: &str, total: u64);
+    /// `done` of `total` units of the current stage are complete.
+    fn advance(&self, done: u64);
+    /// The current stage is finished.
+    fn finish(&self);
+}
+
+/// Progress sink that discards everything.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct NoProgress;
+
+impl Progress for NoProgress {
+    fn start(&self, _stage: &str, _total: u64) {}
+    fn advance(&self, _done: u64) {}
+    fn finish(&self) {}
+}

@@ -1,0 +1,1 @@
+//! CPU z-buffer rendering of meshes to PNG previews.

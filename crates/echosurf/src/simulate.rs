@@ -1,0 +1,1 @@
+//! Phantom simulator: tracked B-mode sweeps of known shapes with ground truth.

@@ -1,0 +1,1 @@
+//! Iso-surface extraction: regularised marching tetrahedra (surface-following) and marching cubes.
