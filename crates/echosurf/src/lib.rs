@@ -19,5 +19,6 @@ pub mod samples;
 pub mod segment;
 pub mod simulate;
 pub mod surface;
+pub mod voxel;
 
 pub use error::{Error, FormatProblem, Result};

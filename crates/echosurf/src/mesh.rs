@@ -37,3 +37,242 @@ impl Mesh {
         )
     }
 }
+
+/// Topological facts about a mesh: what `compare` reports and what the surfacer guarantees.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+pub struct MeshTopology {
+    pub vertices_used: usize,
+    pub triangles: usize,
+    /// Edge-connected components of triangles.
+    pub components: usize,
+    /// Edges used by exactly one triangle (holes or the mesh's rim).
+    pub boundary_edges: usize,
+    /// Edges used by three or more triangles.
+    pub nonmanifold_edges: usize,
+    /// Vertices whose triangles do not form a single fan (pinch points).
+    pub nonmanifold_vertices: usize,
+    /// Interior edges whose two triangles traverse it in the same direction (inconsistent winding).
+    pub misoriented_edges: usize,
+    /// Triangles with a repeated vertex index or zero area.
+    pub degenerate_triangles: usize,
+    /// Triangles with the same vertex set as an earlier one.
+    pub duplicate_triangles: usize,
+    /// V - E + F over the used vertices.
+    pub euler_characteristic: i64,
+}
+
+impl MeshTopology {
+    /// Every edge shared by at most two triangles, fans single, winding consistent, nothing degenerate.
+    pub fn is_oriented_manifold(&self) -> bool {
+        self.nonmanifold_edges == 0
+            && self.nonmanifold_vertices == 0
+            && self.misoriented_edges == 0
+            && self.degenerate_triangles == 0
+            && self.duplicate_triangles == 0
+    }
+
+    /// An oriented manifold without boundary.
+    pub fn is_closed_manifold(&self) -> bool {
+        self.is_oriented_manifold() && self.boundary_edges == 0
+    }
+}
+
+impl Mesh {
+    /// Computes the mesh's topology in O(F log F).
+    pub fn topology(&self) -> MeshTopology {
+        use std::collections::HashMap;
+
+        let mut topo = MeshTopology {
+            triangles: self.triangles.len(),
+            ..Default::default()
+        };
+        // Undirected edge -> (use count, sum of directions: +1 for a->b with a<b, -1 otherwise).
+        let mut edges: HashMap<(u32, u32), (u32, i32)> =
+            HashMap::with_capacity(self.triangles.len() * 2);
+        let mut seen_faces = std::collections::HashSet::with_capacity(self.triangles.len());
+        let mut used = vec![false; self.vertices.len()];
+        let mut parent: Vec<usize> = (0..self.triangles.len()).collect();
+        fn find(parent: &mut [usize], mut i: usize) -> usize {
+            while parent[i] != i {
+                parent[i] = parent[parent[i]];
+                i = parent[i];
+            }
+            i
+        }
+        let mut first_face_of_edge: HashMap<(u32, u32), usize> = HashMap::new();
+        for (f, tri) in self.triangles.iter().enumerate() {
+            let [a, b, c] = *tri;
+            let in_range = tri.iter().all(|&i| (i as usize) < self.vertices.len());
+            if !in_range || a == b || b == c || a == c {
+                topo.degenerate_triangles += 1;
+                continue;
+            }
+            let [pa, pb, pc] = tri.map(|i| self.vertices[i as usize]);
+            if (pb - pa).cross(pc - pa).length_squared() == 0.0 {
+                topo.degenerate_triangles += 1;
+            }
+            let mut key = [a, b, c];
+            key.sort_unstable();
+            if !seen_faces.insert(key) {
+                topo.duplicate_triangles += 1;
+            }
+            for &i in tri {
+                used[i as usize] = true;
+            }
+            for (u, v) in [(a, b), (b, c), (c, a)] {
+                let (lo, hi, dir) = if u < v { (u, v, 1) } else { (v, u, -1) };
+                let e = edges.entry((lo, hi)).or_insert((0, 0));
+                e.0 += 1;
+                e.1 += dir;
+                match first_face_of_edge.get(&(lo, hi)) {
+                    Some(&g) => {
+                        let (rf, rg) = (find(&mut parent, f), find(&mut parent, g));
+                        if rf != rg {
+                            parent[rf] = rg;
+                        }
+                    }
+                    None => {
+                        first_face_of_edge.insert((lo, hi), f);
+                    }
+                }
+            }
+        }
+        for &(count, dir_sum) in edges.values() {
+            match count {
+                1 => topo.boundary_edges += 1,
+                2 if dir_sum != 0 => topo.misoriented_edges += 1,
+                2 => {}
+                _ => topo.nonmanifold_edges += 1,
+            }
+        }
+        let valid_faces: Vec<usize> = (0..self.triangles.len())
+            .filter(|&f| {
+                let [a, b, c] = self.triangles[f];
+                a != b
+                    && b != c
+                    && a != c
+                    && self.triangles[f]
+                        .iter()
+                        .all(|&i| (i as usize) < self.vertices.len())
+            })
+            .collect();
+        let mut roots: Vec<usize> = valid_faces.iter().map(|&f| find(&mut parent, f)).collect();
+        roots.sort_unstable();
+        roots.dedup();
+        topo.components = roots.len();
+        topo.vertices_used = used.iter().filter(|&&u| u).count();
+        topo.nonmanifold_vertices = self.count_pinched_vertices(&valid_faces);
+        topo.euler_characteristic =
+            topo.vertices_used as i64 - edges.len() as i64 + valid_faces.len() as i64;
+        topo
+    }
+
+    /// Vertices whose incident triangles form more than one fan: the link (opposite edges) of such a
+    /// vertex falls apart into several pieces.
+    fn count_pinched_vertices(&self, faces: &[usize]) -> usize {
+        let mut link: Vec<Vec<(u32, u32)>> = vec![Vec::new(); self.vertices.len()];
+        for &f in faces {
+            let [a, b, c] = self.triangles[f];
+            link[a as usize].push((b, c));
+            link[b as usize].push((c, a));
+            link[c as usize].push((a, b));
+        }
+        let mut pinched = 0;
+        let mut ids: Vec<u32> = Vec::new();
+        let mut parent: Vec<usize> = Vec::new();
+        for edges in link.iter().filter(|e| e.len() > 1) {
+            ids.clear();
+            for &(u, v) in edges {
+                ids.push(u);
+                ids.push(v);
+            }
+            ids.sort_unstable();
+            ids.dedup();
+            parent.clear();
+            parent.extend(0..ids.len());
+            let idx = |x: u32| ids.binary_search(&x).unwrap_or(0);
+            fn find(parent: &mut [usize], mut i: usize) -> usize {
+                while parent[i] != i {
+                    parent[i] = parent[parent[i]];
+                    i = parent[i];
+                }
+                i
+            }
+            let mut pieces = ids.len();
+            for &(u, v) in edges {
+                let (ru, rv) = (find(&mut parent, idx(u)), find(&mut parent, idx(v)));
+                if ru != rv {
+                    parent[ru] = rv;
+                    pieces -= 1;
+                }
+            }
+            if pieces > 1 {
+                pinched += 1;
+            }
+        }
+        pinched
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tetrahedron() -> Mesh {
+        Mesh {
+            vertices: vec![DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::Z],
+            normals: vec![],
+            // Outward-facing, counter-clockwise seen from outside.
+            triangles: vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        }
+    }
+
+    #[test]
+    fn closed_tetrahedron_is_a_sphere() {
+        let t = tetrahedron().topology();
+        assert!(t.is_closed_manifold(), "{t:?}");
+        assert_eq!(t.euler_characteristic, 2);
+        assert_eq!(t.components, 1);
+    }
+
+    #[test]
+    fn flipped_face_is_misoriented_and_missing_face_is_boundary() {
+        let mut m = tetrahedron();
+        m.triangles[3] = [1, 3, 2];
+        let t = m.topology();
+        assert_eq!(t.misoriented_edges, 3);
+        m.triangles.pop();
+        let t = m.topology();
+        assert_eq!(t.boundary_edges, 3);
+        assert!(!t.is_closed_manifold());
+    }
+
+    #[test]
+    fn two_tetrahedra_sharing_a_vertex_pinch_it() {
+        let mut m = tetrahedron();
+        let offset = m.vertices.len() as u32;
+        // Second tetrahedron sharing vertex 3 only.
+        m.vertices.extend([
+            DVec3::new(0.0, 0.0, 2.0),
+            DVec3::new(1.0, 0.0, 2.0),
+            DVec3::new(0.0, 1.0, 2.0),
+        ]);
+        let (a, b, c, d) = (3, offset, offset + 1, offset + 2);
+        m.triangles
+            .extend([[a, c, b], [a, b, d], [a, d, c], [b, c, d]]);
+        let t = m.topology();
+        assert_eq!(t.nonmanifold_vertices, 1);
+        assert_eq!(t.components, 2);
+        assert!(!t.is_oriented_manifold());
+    }
+
+    #[test]
+    fn degenerate_and_duplicate_faces_are_counted() {
+        let mut m = tetrahedron();
+        m.triangles.push([0, 0, 1]);
+        m.triangles.push([2, 1, 0]);
+        let t = m.topology();
+        assert_eq!(t.degenerate_triangles, 1);
+        assert_eq!(t.duplicate_triangles, 1);
+    }
+}

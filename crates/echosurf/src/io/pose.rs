@@ -58,9 +58,10 @@ pub fn resolve_poses(
 /// 5 mm or the timestamp by more than 1 s between consecutive usable frames.
 pub fn split_sweeps(sequence: &TrackedSequence, poses: &PoseResolution) -> Vec<Sweep> {
     let _ = sequence;
-    if poses.poses.is_empty() {
+    let all: Sweep = 0..poses.poses.len();
+    if all.is_empty() {
         Vec::new()
     } else {
-        vec![0..poses.poses.len()]
+        vec![all]
     }
 }
