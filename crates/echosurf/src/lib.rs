@@ -15,6 +15,7 @@ pub mod metrics;
 pub mod progress;
 pub mod rbf;
 pub mod render;
+pub mod resources;
 pub mod samples;
 pub mod segment;
 pub mod simulate;
