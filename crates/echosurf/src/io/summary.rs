@@ -370,7 +370,7 @@ mod tests {
         assert!(!s.notes.is_empty());
         let cal = Calibration::from_image_to_probe(DMat4::from_scale(DVec3::splat(0.5)));
         let s = summarise(&seq, Some(&cal), ReferenceChoice::Auto, Path::new("x")).unwrap();
-        let b = s.bounds_mm.unwrap();
+        let b = s.bounds_mm.clone().unwrap();
         assert_eq!((b.min, b.max), ([0.0, 0.0, 0.0], [2.5, 0.5, 0.0]));
         assert!(s.to_text("x").contains("bounds mm"));
     }
