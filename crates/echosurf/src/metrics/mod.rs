@@ -312,15 +312,14 @@ fn summarise(distances: &[f64], extra_max: f64) -> SurfaceDistances {
     }
 }
 
-/// Test shapes shared by the metrics and render tests.
-#[cfg(test)]
-pub(crate) mod shapes {
+/// Closed analytic reference meshes for tests, benchmarks and demos (known area, distances, topology).
+pub mod shapes {
     use super::*;
     use std::collections::HashMap;
 
     /// An icosphere: the icosahedron with each triangle split in four `subdivisions` times, vertices
     /// pushed to the sphere. Outward counter-clockwise winding, closed, vertex normals set.
-    pub(crate) fn icosphere(centre: DVec3, radius: f64, subdivisions: u32) -> Mesh {
+    pub fn icosphere(centre: DVec3, radius: f64, subdivisions: u32) -> Mesh {
         let t = (1.0 + 5f64.sqrt()) / 2.0;
         let mut vertices: Vec<DVec3> = [
             (-1.0, t, 0.0),
@@ -387,7 +386,7 @@ pub(crate) mod shapes {
     }
 
     /// A torus around z (major radius `big`, tube radius `small`), closed, outward winding, normals set.
-    pub(crate) fn torus(big: f64, small: f64, around: u32, tube: u32) -> Mesh {
+    pub fn torus(big: f64, small: f64, around: u32, tube: u32) -> Mesh {
         let mut mesh = Mesh::default();
         for i in 0..around {
             let u = i as f64 / around as f64 * std::f64::consts::TAU;
