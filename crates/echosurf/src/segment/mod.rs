@@ -76,7 +76,9 @@ impl Length {
 /// The paper's segmentation parameters (defaults = the paper's values) and the extras echosurf adds.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SegmentOptions {
-    /// Gaussian smoothing before the gradients (speckle suppression). Default 2 px.
+    /// Gaussian smoothing before the gradients (speckle suppression). Not a paper parameter; default
+    /// 0.5 mm, about the axial resolution (speckle grain) of a 7 MHz probe, so it scales with the pixel
+    /// size (6 px on the PLUS spine data, 3.3 px at 0.15 mm/px). Without poses, 1 px = 1 mm.
     pub smoothing_sigma: Length,
     /// M as a fraction of the number of columns (of the clip rectangle), used unless `edgel_count` is set.
     /// The paper only says M is smaller than the number of columns; default 0.5.
@@ -103,12 +105,21 @@ pub struct SegmentOptions {
     /// Automatic init keeps every bright connected structure whose echo mass is at least this fraction of
     /// the strongest one. Default 0.25.
     pub auto_keep_fraction: f64,
+    /// Automatic init scores echoes by their brightness over the mean of the column below them (the
+    /// acoustic shadow of a boundary), from this far below... Default 8 px.
+    pub auto_shadow_offset: Length,
+    /// ...over this length. Default 64 px.
+    pub auto_shadow_length: Length,
+    /// Shrink the clip rectangle to the part of the frame that holds image data (the bounding box of the
+    /// pixels that are non-zero in any of up to 16 sampled frames), so the black margins of a scanner's
+    /// frame grab produce no edgels. Default true.
+    pub detect_data_region: bool,
 }
 
 impl Default for SegmentOptions {
     fn default() -> Self {
         SegmentOptions {
-            smoothing_sigma: Length::Px(2.0),
+            smoothing_sigma: Length::Mm(0.5),
             edgel_fraction: 0.5,
             edgel_count: None,
             min_edgel_gradient: 0.0,
@@ -120,6 +131,9 @@ impl Default for SegmentOptions {
             min_edgels_in_band_fraction: 0.02,
             auto_smoothing_sigma: Length::Px(6.0),
             auto_keep_fraction: 0.25,
+            auto_shadow_offset: Length::Px(8.0),
+            auto_shadow_length: Length::Px(64.0),
+            detect_data_region: true,
         }
     }
 }
@@ -143,6 +157,9 @@ impl SegmentOptions {
             || matches!(self.likelihood_sigma, Length::Px(0.0) | Length::Mm(0.0))
         {
             return bad("likelihood_sigma", "must be finite and > 0");
+        }
+        if !len_ok(self.auto_shadow_offset) || !len_ok(self.auto_shadow_length) {
+            return bad("auto_shadow_offset/auto_shadow_length", "must be finite and >= 0");
         }
         if !len_ok(self.likelihood_truncation) {
             return bad("likelihood_truncation", "must be finite and >= 0");
@@ -314,6 +331,8 @@ struct Propagator {
     proximity: Vec<f32>,
     band_radius_inside_px: f64,
     auto_keep_fraction: f32,
+    shadow_offset_px: usize,
+    shadow_length_px: usize,
 }
 
 impl Propagator {
@@ -392,6 +411,10 @@ impl Propagator {
         let mut smoothed = std::mem::take(&mut ws.tmp);
         let mut scratch = Vec::new();
         smooth(&ws.grey, w, h, &self.auto_taps, &mut scratch, &mut smoothed);
+        // Echo over shadow: a boundary is bright with dark below it (no penetration), while near-field
+        // reverberation and bright tissue layers have bright tissue below them.
+        shadow_contrast(&smoothed, w, h, self.shadow_offset_px, self.shadow_length_px, &mut scratch);
+        std::mem::swap(&mut smoothed, &mut scratch);
         let seeds = find_echo_structures(
             &smoothed,
             w,
@@ -497,7 +520,12 @@ pub fn segment_sequence(
         }
         _ => 1.0,
     };
-    let clip = effective_clip(clip, width, height);
+    let mut clip = effective_clip(clip, width, height);
+    if options.detect_data_region
+        && let Some(c) = clip
+    {
+        clip = data_region(sequence, poses, c);
+    }
     let orientation = {
         let third = sequence.orientation.chars().nth(2);
         let mut o = String::from("MF");
@@ -580,6 +608,8 @@ pub fn segment_sequence(
         proximity,
         band_radius_inside_px: parameters.band_radius_inside_px.max(1.0),
         auto_keep_fraction: options.auto_keep_fraction as f32,
+        shadow_offset_px: options.auto_shadow_offset.to_px(px_size).round() as usize,
+        shadow_length_px: (options.auto_shadow_length.to_px(px_size).round() as usize).max(1),
     };
     let init_crop: Option<Vec<bool>> = init_full.map(|full| crop_bool(&full, width, clip));
     if let Some(b) = &init_crop
@@ -665,6 +695,63 @@ pub fn segment_sequence(
         orientation,
         parameters,
     })
+}
+
+/// The bounding box, inside `clip`, of the pixels that are non-zero in any of up to 16 frames spread over
+/// the posed frames; `None` if all are zero.
+pub fn data_region(sequence: &TrackedSequence, poses: &PoseResolution, clip: ClipRect) -> Option<ClipRect> {
+    let n = poses.poses.len();
+    if n == 0 {
+        return Some(clip);
+    }
+    let picks: BTreeSet<usize> = (0..n.min(16)).map(|k| poses.poses[k * n / n.min(16)].frame_index).collect();
+    let [u0, v0] = clip.origin_px;
+    let [cw, ch] = clip.size_px;
+    let (mut umin, mut umax, mut vmin, mut vmax) = (usize::MAX, 0, usize::MAX, 0);
+    let mut grey = Vec::new();
+    for f in picks {
+        load_grey_crop(sequence, f, clip, &mut grey);
+        for v in 0..ch {
+            let row = &grey[v * cw..(v + 1) * cw];
+            if let Some(first) = row.iter().position(|&x| x != 0.0) {
+                let last = row.iter().rposition(|&x| x != 0.0).unwrap_or(first);
+                umin = umin.min(first);
+                umax = umax.max(last);
+                vmin = vmin.min(v);
+                vmax = vmax.max(v);
+            }
+        }
+    }
+    (umin <= umax).then(|| ClipRect {
+        origin_px: [u0 + umin, v0 + vmin],
+        size_px: [umax - umin + 1, vmax - vmin + 1],
+    })
+}
+
+/// `out = max(0, s(u, v) - mean of s over rows v+offset .. v+offset+length of the same column)`, zero
+/// where the window leaves the image entirely.
+fn shadow_contrast(s: &[f32], w: usize, h: usize, offset: usize, length: usize, out: &mut Vec<f32>) {
+    // Column prefix sums, row by row: prefix[v * w + u] = sum of s over rows < v.
+    let mut prefix = vec![0f64; (h + 1) * w];
+    for v in 0..h {
+        for u in 0..w {
+            prefix[(v + 1) * w + u] = prefix[v * w + u] + s[v * w + u] as f64;
+        }
+    }
+    out.clear();
+    out.resize(w * h, 0.0);
+    for v in 0..h {
+        let a = (v + offset).min(h);
+        let b = (v + offset + length).min(h);
+        if b <= a {
+            continue;
+        }
+        let count = (b - a) as f64;
+        for u in 0..w {
+            let below = (prefix[b * w + u] - prefix[a * w + u]) / count;
+            out[v * w + u] = (s[v * w + u] as f64 - below).max(0.0) as f32;
+        }
+    }
 }
 
 /// Grey levels (channels averaged) of the clip rectangle of frame `index`.
