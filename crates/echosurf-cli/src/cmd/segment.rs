@@ -1,8 +1,170 @@
 //! `echosurf segment`.
 
-#[derive(Debug, clap::Args)]
-pub struct Args {}
+use std::path::PathBuf;
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("`echosurf segment` is not implemented yet")
+use anyhow::Context;
+use echosurf::io::{self, ReferenceChoice};
+use echosurf::segment::{
+    InitialBand, Length, SegmentOptions, default_preview_frames, segment_sequence, write_band_preview,
+};
+
+use crate::progress::BarProgress;
+
+/// Options shared by `segment` and `sample`: the sequence, its calibration, the initial band and the
+/// paper's parameters.
+#[derive(Debug, clap::Args)]
+pub struct SegmentArgs {
+    /// Tracked sequence (.igs.mha, .mhd, .igs.nrrd).
+    pub sequence: PathBuf,
+    /// PLUS device-set XML with the Image->Probe calibration (and clip rectangle).
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Initial band for the first frame of each sweep: a PNG mask of the frame size (non-zero = band) or a
+    /// JSON polygon {"polygon": [[u, v], ...]} in pixels of the MF-oriented frame.
+    #[arg(long, conflicts_with = "auto_init")]
+    pub init: Option<PathBuf>,
+    /// Find the initial band automatically (bright connected echo structures).
+    #[arg(long)]
+    pub auto_init: bool,
+    /// Gaussian smoothing before the gradients, in px (default 0.5 mm).
+    #[arg(long, conflicts_with = "smoothing_mm")]
+    pub smoothing_px: Option<f64>,
+    /// Gaussian smoothing before the gradients, in mm.
+    #[arg(long)]
+    pub smoothing_mm: Option<f64>,
+    /// M, edgels kept per frame (default: --edgel-fraction x clip width).
+    #[arg(long)]
+    pub edgels: Option<usize>,
+    /// M as a fraction of the number of columns.
+    #[arg(long, default_value_t = 0.5)]
+    pub edgel_fraction: f64,
+    /// Prior inside the carried band (C1).
+    #[arg(long, default_value_t = 1.0)]
+    pub prior_inside: f64,
+    /// Prior outside the carried band (C0).
+    #[arg(long, default_value_t = 0.2)]
+    pub prior_outside: f64,
+    /// Sigma of the Gaussian proximity weight in px (paper: 15).
+    #[arg(long, conflicts_with = "sigma_mm")]
+    pub sigma_px: Option<f64>,
+    /// Sigma of the Gaussian proximity weight in mm (converted with the pixel size).
+    #[arg(long)]
+    pub sigma_mm: Option<f64>,
+    /// Truncation of the proximity weight in px (paper: 32).
+    #[arg(long, conflicts_with = "truncation_mm")]
+    pub truncation_px: Option<f64>,
+    /// Truncation of the proximity weight in mm.
+    #[arg(long)]
+    pub truncation_mm: Option<f64>,
+    /// Threshold T on the new map.
+    #[arg(long, default_value_t = 0.35)]
+    pub threshold: f64,
+    /// World frame: auto, tracker or reference.
+    #[arg(long, default_value = "auto")]
+    pub world: String,
+}
+
+impl SegmentArgs {
+    pub fn options(&self) -> SegmentOptions {
+        let defaults = SegmentOptions::default();
+        let length = |px: Option<f64>, mm: Option<f64>, default: Length| match (px, mm) {
+            (Some(p), _) => Length::Px(p),
+            (None, Some(m)) => Length::Mm(m),
+            _ => default,
+        };
+        SegmentOptions {
+            smoothing_sigma: length(self.smoothing_px, self.smoothing_mm, defaults.smoothing_sigma),
+            edgel_fraction: self.edgel_fraction,
+            edgel_count: self.edgels,
+            prior_inside: self.prior_inside,
+            prior_outside: self.prior_outside,
+            likelihood_sigma: length(self.sigma_px, self.sigma_mm, defaults.likelihood_sigma),
+            likelihood_truncation: length(
+                self.truncation_px,
+                self.truncation_mm,
+                defaults.likelihood_truncation,
+            ),
+            threshold: self.threshold,
+            ..defaults
+        }
+    }
+
+    /// Reads everything and segments; returns the sequence, poses and masks.
+    pub fn run(
+        &self,
+    ) -> anyhow::Result<(io::TrackedSequence, io::PoseResolution, echosurf::segment::BandMasks)> {
+        let world = match self.world.to_ascii_lowercase().as_str() {
+            "auto" => ReferenceChoice::Auto,
+            "tracker" => ReferenceChoice::Tracker,
+            "reference" => ReferenceChoice::Reference,
+            other => anyhow::bail!("--world {other}: expected auto, tracker or reference"),
+        };
+        let sequence = io::read_sequence(&self.sequence)?;
+        let calibration = io::read_calibration(&self.config)?;
+        let poses = io::resolve_poses(&sequence, Some(&calibration), world, &self.sequence)?;
+        let init = match (&self.init, self.auto_init) {
+            (Some(path), false) => InitialBand::load(path, sequence.width, sequence.height)?,
+            (None, true) => InitialBand::Auto,
+            _ => anyhow::bail!("give the initial band with --init FILE or ask for --auto-init"),
+        };
+        let progress = BarProgress::new();
+        let masks = segment_sequence(
+            &sequence,
+            &poses,
+            calibration.clip,
+            &init,
+            &self.options(),
+            &progress,
+        )
+        .with_context(|| format!("segmenting {}", self.sequence.display()))?;
+        for w in &masks.warnings {
+            eprintln!("warning: {w}");
+        }
+        Ok((sequence, poses, masks))
+    }
+}
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub segment: SegmentArgs,
+    /// Output masks: PLUS .mha, W x H x N, MET_UCHAR, 255 = kept.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also write a PNG montage of frames with the band outlined.
+    #[arg(long)]
+    pub preview: Option<PathBuf>,
+    /// Number of frames in the preview montage.
+    #[arg(long, default_value_t = 9)]
+    pub preview_frames: usize,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let (sequence, poses, masks) = args.segment.run()?;
+    io::write_sequence(&args.out, &masks.to_sequence(), true)?;
+    if let Some(path) = &args.preview {
+        let frames = default_preview_frames(&masks, args.preview_frames);
+        if frames.is_empty() {
+            eprintln!("warning: no frame has a band; preview not written");
+        } else {
+            write_band_preview(path, &sequence, &masks, &frames)?;
+        }
+    }
+    let p = masks.parameters;
+    println!(
+        "segmented {} of {} frames ({} skipped), kept {:.1}% of all pixels; M = {} edgels, sigma {:.1} px, \
+         band +/-{:.1} px{}; {} warning(s)",
+        poses.poses.len(),
+        sequence.frames.len(),
+        poses.skipped.len(),
+        100.0 * masks.kept_fraction(),
+        p.edgel_count,
+        p.likelihood_sigma_px,
+        p.band_radius_inside_px,
+        p.pixel_size_mm
+            .map(|s| format!(" ({:.2} mm at {:.3} mm/px)", p.band_radius_inside_px * s, s))
+            .unwrap_or_default(),
+        masks.warnings.len()
+    );
+    Ok(())
 }

@@ -1,0 +1,306 @@
+//! Image filters the band logic needs, all on row-major `f32` crops: separable Gaussian smoothing,
+//! column edgels (non-maximum-suppressed vertical gradients) and a truncated exact Euclidean distance
+//! transform. Every buffer is owned by the caller and reused from frame to frame; rows are processed in
+//! parallel and results are gathered in row order, so output never depends on the thread count.
+
+use rayon::prelude::*;
+
+/// Normalised 1D Gaussian taps for `sigma_px`, radius `ceil(3 sigma)`; a single unit tap for sigma <= 0.
+pub fn gaussian_taps(sigma_px: f64) -> Vec<f32> {
+    if !(sigma_px > 0.0) {
+        return vec![1.0];
+    }
+    let radius = (3.0 * sigma_px).ceil() as i64;
+    let taps: Vec<f64> = (-radius..=radius)
+        .map(|k| (-(k * k) as f64 / (2.0 * sigma_px * sigma_px)).exp())
+        .collect();
+    let sum: f64 = taps.iter().sum();
+    taps.iter().map(|t| (t / sum) as f32).collect()
+}
+
+/// Separable Gaussian smoothing with replicated borders: `src` (w x h) -> `out`, `tmp` is scratch.
+pub fn smooth(
+    src: &[f32],
+    width: usize,
+    height: usize,
+    taps: &[f32],
+    tmp: &mut Vec<f32>,
+    out: &mut Vec<f32>,
+) {
+    let n = width * height;
+    tmp.resize(n, 0.0);
+    out.resize(n, 0.0);
+    if n == 0 {
+        return;
+    }
+    let radius = (taps.len() / 2) as isize;
+    // Horizontal pass, one row per task.
+    tmp.par_chunks_mut(width)
+        .zip(src.par_chunks(width))
+        .for_each(|(dst, row)| {
+            let last = width as isize - 1;
+            for (u, d) in dst.iter_mut().enumerate() {
+                let u = u as isize;
+                let mut acc = 0.0f32;
+                if u - radius >= 0 && u + radius <= last {
+                    let start = (u - radius) as usize;
+                    for (t, x) in taps.iter().zip(&row[start..start + taps.len()]) {
+                        acc += t * x;
+                    }
+                } else {
+                    for (k, t) in taps.iter().enumerate() {
+                        let j = (u + k as isize - radius).clamp(0, last) as usize;
+                        acc += t * row[j];
+                    }
+                }
+                *d = acc;
+            }
+        });
+    // Vertical pass: each output row is a weighted sum of whole input rows (vectorises along the row).
+    let tmp_ref: &[f32] = tmp;
+    out.par_chunks_mut(width).enumerate().for_each(|(v, dst)| {
+        dst.fill(0.0);
+        let last = height as isize - 1;
+        for (k, t) in taps.iter().enumerate() {
+            let j = (v as isize + k as isize - radius).clamp(0, last) as usize;
+            let row = &tmp_ref[j * width..(j + 1) * width];
+            for (d, x) in dst.iter_mut().zip(row) {
+                *d += t * x;
+            }
+        }
+    });
+}
+
+/// One edgel: a local maximum along its column of the vertical gradient magnitude.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Edgel {
+    /// |dI/dv| of the smoothed image, grey levels per pixel.
+    pub strength: f32,
+    /// Row-major index `v * width + u` in the crop.
+    pub index: u32,
+}
+
+/// The `count` strongest column edgels of a smoothed image: pixels whose central-difference vertical
+/// gradient magnitude exceeds `min_strength` and is a maximum along the column (echoes travel down the
+/// columns, so a boundary crosses each column once; suppressing non-maxima turns one blurred edge into one
+/// edgel per column instead of several). Ties are broken by index, so the choice is deterministic.
+pub fn strongest_column_edgels(
+    smoothed: &[f32],
+    width: usize,
+    height: usize,
+    count: usize,
+    min_strength: f32,
+    out: &mut Vec<Edgel>,
+) {
+    out.clear();
+    if height < 5 || width == 0 || count == 0 {
+        return;
+    }
+    let grad = |u: usize, v: usize| -> f32 {
+        0.5 * (smoothed[(v + 1) * width + u] - smoothed[(v - 1) * width + u]).abs()
+    };
+    let rows: Vec<Vec<Edgel>> = (2..height - 2)
+        .into_par_iter()
+        .map(|v| {
+            let mut found = Vec::new();
+            for u in 0..width {
+                let g = grad(u, v);
+                if g > min_strength && g > grad(u, v - 1) && g >= grad(u, v + 1) {
+                    found.push(Edgel {
+                        strength: g,
+                        index: (v * width + u) as u32,
+                    });
+                }
+            }
+            found
+        })
+        .collect();
+    for r in rows {
+        out.extend(r);
+    }
+    let order = |a: &Edgel, b: &Edgel| {
+        b.strength
+            .total_cmp(&a.strength)
+            .then(a.index.cmp(&b.index))
+    };
+    if out.len() > count {
+        out.select_nth_unstable_by(count - 1, order);
+        out.truncate(count);
+    }
+    out.sort_unstable_by_key(|e| e.index);
+}
+
+/// Squared Euclidean distance (in px^2, exact integers) from every pixel to the nearest seed, computed
+/// exactly up to `cap_px` and reported as at least `cap_px^2` beyond it (the callers only need distances
+/// inside the likelihood's truncation radius). Felzenszwalb & Huttenlocher's lower envelope per row
+/// after a column pass. `seeds` are row-major indices.
+pub fn squared_distance_capped(
+    seeds: impl Iterator<Item = usize>,
+    width: usize,
+    height: usize,
+    cap_px: u32,
+    column: &mut Vec<u32>,
+    out: &mut Vec<f32>,
+) {
+    let n = width * height;
+    let cap = cap_px.max(1);
+    column.clear();
+    column.resize(n, cap);
+    out.resize(n, 0.0);
+    if n == 0 {
+        return;
+    }
+    for s in seeds {
+        column[s] = 0;
+    }
+    // Column distances: forward then backward sweep, row by row (contiguous, vectorisable).
+    for v in 1..height {
+        let (above, here) = column.split_at_mut(v * width);
+        let above = &above[(v - 1) * width..];
+        for (h, a) in here[..width].iter_mut().zip(above) {
+            *h = (*h).min(a + 1).min(cap);
+        }
+    }
+    for v in (0..height - 1).rev() {
+        let (here, below) = column.split_at_mut((v + 1) * width);
+        let here = &mut here[v * width..];
+        for (h, b) in here.iter_mut().zip(&below[..width]) {
+            *h = (*h).min(b + 1).min(cap);
+        }
+    }
+    let column_ref: &[u32] = column;
+    out.par_chunks_mut(width).enumerate().for_each_init(
+        || (vec![0usize; width], vec![0f32; width + 1]),
+        |(hull, bounds), (v, dst)| {
+            let f = |q: usize| {
+                let d = column_ref[v * width + q] as f32;
+                d * d
+            };
+            lower_envelope(width, f, hull, bounds, dst);
+        },
+    );
+}
+
+/// 1D squared distance transform of sampled function `f` over 0..n (Felzenszwalb & Huttenlocher 2012).
+fn lower_envelope(
+    n: usize,
+    f: impl Fn(usize) -> f32,
+    hull: &mut [usize],
+    bounds: &mut [f32],
+    dst: &mut [f32],
+) {
+    let mut k = 0usize;
+    hull[0] = 0;
+    bounds[0] = f32::NEG_INFINITY;
+    bounds[1] = f32::INFINITY;
+    let fq_plus = |q: usize| f(q) + (q * q) as f32;
+    for q in 1..n {
+        // bounds[0] is -inf, so the loop stops at k = 0 at the latest.
+        let mut s = (fq_plus(q) - fq_plus(hull[k])) / (2.0 * (q as f32 - hull[k] as f32));
+        while s <= bounds[k] {
+            k -= 1;
+            s = (fq_plus(q) - fq_plus(hull[k])) / (2.0 * (q as f32 - hull[k] as f32));
+        }
+        k += 1;
+        hull[k] = q;
+        bounds[k] = s;
+        bounds[k + 1] = f32::INFINITY;
+    }
+    let mut k = 0usize;
+    for (x, d) in dst.iter_mut().enumerate().take(n) {
+        while bounds[k + 1] < x as f32 {
+            k += 1;
+        }
+        let p = hull[k];
+        let dx = x as f32 - p as f32;
+        *d = dx * dx + f(p);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Brute-force reference for the distance transform.
+    fn brute(seeds: &[usize], w: usize, h: usize, cap: u32) -> Vec<f32> {
+        (0..w * h)
+            .map(|i| {
+                let (u, v) = ((i % w) as i64, (i / w) as i64);
+                let best = seeds
+                    .iter()
+                    .map(|&s| {
+                        let (su, sv) = ((s % w) as i64, (s / w) as i64);
+                        ((u - su).pow(2) + (v - sv).pow(2)) as f32
+                    })
+                    .fold(f32::INFINITY, f32::min);
+                best.min((cap * cap) as f32)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn distance_transform_matches_brute_force_below_cap() {
+        let (w, h, cap) = (37, 23, 9);
+        let seeds = [5usize, 100, 101, 400, 777, 850];
+        let mut col = Vec::new();
+        let mut out = Vec::new();
+        squared_distance_capped(seeds.iter().copied(), w, h, cap, &mut col, &mut out);
+        let reference = brute(&seeds, w, h, cap);
+        for i in 0..w * h {
+            let capped = out[i].min((cap * cap) as f32);
+            // Exact below the cap (all quantities are small integers in f32); at least cap^2 beyond.
+            if reference[i] < (cap * cap) as f32 {
+                assert_eq!(capped, reference[i], "pixel {i}");
+            } else {
+                assert!(out[i] >= (cap * cap) as f32, "pixel {i}");
+            }
+        }
+    }
+
+    #[test]
+    fn distance_transform_without_seeds_is_at_cap() {
+        let mut col = Vec::new();
+        let mut out = Vec::new();
+        squared_distance_capped(std::iter::empty(), 8, 6, 5, &mut col, &mut out);
+        assert!(out.iter().all(|&d| d >= 25.0));
+    }
+
+    #[test]
+    fn smoothing_preserves_constants_and_mass_of_an_impulse() {
+        let (w, h) = (31, 29);
+        let taps = gaussian_taps(2.0);
+        let mut tmp = Vec::new();
+        let mut out = Vec::new();
+        smooth(&vec![7.0; w * h], w, h, &taps, &mut tmp, &mut out);
+        assert!(out.iter().all(|&x| (x - 7.0).abs() < 1e-4));
+        let mut impulse = vec![0.0; w * h];
+        impulse[15 * w + 15] = 1.0;
+        smooth(&impulse, w, h, &taps, &mut tmp, &mut out);
+        let sum: f32 = out.iter().sum();
+        assert!((sum - 1.0).abs() < 1e-5, "mass {sum}");
+        // Symmetric and peaked at the impulse.
+        assert_eq!(out[15 * w + 14], out[15 * w + 16]);
+        assert_eq!(out[14 * w + 15], out[16 * w + 15]);
+        assert!(out[15 * w + 15] > out[15 * w + 16]);
+    }
+
+    #[test]
+    fn edgels_sit_on_a_horizontal_step_one_per_column() {
+        let (w, h) = (12, 20);
+        let img: Vec<f32> = (0..w * h)
+            .map(|i| if i / w >= 10 { 100.0 } else { 0.0 })
+            .collect();
+        let mut tmp = Vec::new();
+        let mut s = Vec::new();
+        smooth(&img, w, h, &gaussian_taps(1.5), &mut tmp, &mut s);
+        let mut edgels = Vec::new();
+        strongest_column_edgels(&s, w, h, 100, 0.0, &mut edgels);
+        assert_eq!(edgels.len(), w);
+        for e in &edgels {
+            let v = e.index as usize / w;
+            assert!(v == 9 || v == 10, "edgel at row {v}");
+        }
+        strongest_column_edgels(&s, w, h, 5, 0.0, &mut edgels);
+        assert_eq!(edgels.len(), 5);
+    }
+}

@@ -1,0 +1,804 @@
+//! Band segmentation (Zhang, Rohling & Pai 2002): keep a band of pixels around the boundary in each frame.
+//!
+//! The fit only sees the pixels kept here, so the band must contain the boundary and some pixels on either
+//! side of it (their intensities act as a quasi-distance to the boundary), and should drop the rest.
+//!
+//! # The propagation, as the paper specifies it
+//! For each frame `i` of a sweep, with `B_i` the band carried from the previous frame (for the first frame:
+//! the initial band):
+//! 1. prior `P = C1` (1.0) on `B_i`, `C0` (0.2) elsewhere;
+//! 2. edgels: the `M` largest vertical gradients of the smoothed frame, one local maximum per column
+//!    crossing (echoes travel down the columns);
+//! 3. likelihood: Gaussian-weighted proximity to the nearest edgel, `G(d) = exp(-d^2 / 2 sigma^2)` for
+//!    `d <= truncation` and 0 beyond (sigma 15 px, truncation 32 px);
+//! 4. `P_new = L (x) P + C0`;
+//! 5. the band kept in frame `i` (and carried to frame `i + 1`) is `P_new >= T` (0.35).
+//!
+//! **Our reading of `L (x) P`.** The likelihood kernel is centred on the edgels and each edgel carries the
+//! prior of the pixel it sits on, so `(L (x) P)(x) = max_e P(e) G(|x - e|)` over the edgels `e`: a
+//! convolution of the prior-weighted edgel map with the Gaussian proximity kernel, taken in the max-product
+//! sense so that "proximity to the *nearest* edgel" holds and the result does not grow with edgel density.
+//! Consequences, with the defaults: an edgel inside the previous band keeps every pixel within
+//! `sigma * sqrt(2 ln(C1 / (T - C0)))` = 29.2 px of it (on both sides of the boundary); an edgel outside
+//! the band keeps only `sigma * sqrt(2 ln(C0 / (T - C0)))` = 11.4 px around it (a new, unconfirmed echo is
+//! kept narrowly and confirmed by the next frame); pixels near no edgel get `C0 < T` and are dropped. The
+//! new band is centred on *this* frame's edgels, not on the old band, so it follows a boundary that moves
+//! by up to ~29 px between frames and does not drift or widen. (A pointwise product `L * P` would instead
+//! shrink the band on the side the boundary moves towards, by the motion, every frame.)
+//!
+//! **Pixel units.** All lengths are in pixels of the frame, as in the paper, whose frames were about
+//! 0.1-0.2 mm/px: there sigma 15 px is 1.5-3 mm and the band is about +/-3-6 mm. On finer images the same
+//! pixel values give a band that is narrower in mm (the PLUS spine data at 0.08 mm/px: +/-2.3 mm), and on
+//! coarser images a wider one. Each length can instead be given in mm ([`Length::Mm`]); it is converted with
+//! the pixel size of the frames' Image->World matrices (mean of the column and row spacing).
+//!
+//! Beyond the paper: an automatic initial band ([`InitialBand::Auto`]), recovery from a lost band (fewer
+//! than `min_edgels_in_band_fraction * M` edgels inside the carried band: a warning naming the frame, then
+//! automatic re-initialisation on that frame), and the clip rectangle (pixels outside it are never kept and
+//! never produce edgels).
+
+mod filters;
+mod init;
+mod preview;
+#[doc(hidden)]
+pub mod synthetic;
+
+use std::collections::BTreeSet;
+
+use glam::DMat4;
+
+pub use init::{find_echo_structures, rasterize_polygon};
+pub use preview::{default_preview_frames, write_band_preview};
+
+use crate::io::{ClipRect, PixelData, PoseResolution, TrackedFrame, TrackedSequence};
+use crate::progress::Progress;
+use crate::{Error, Result};
+
+use filters::{Edgel, gaussian_taps, smooth, squared_distance_capped, strongest_column_edgels};
+
+/// A length given in pixels of the frame or in millimetres (converted with the frames' pixel size).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum Length {
+    Px(f64),
+    Mm(f64),
+}
+
+impl Length {
+    /// The length in pixels, given the pixel size in mm (only used for [`Length::Mm`]).
+    pub fn to_px(self, pixel_size_mm: f64) -> f64 {
+        match self {
+            Length::Px(px) => px,
+            Length::Mm(mm) => mm / pixel_size_mm,
+        }
+    }
+}
+
+/// The paper's segmentation parameters (defaults = the paper's values) and the extras echosurf adds.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SegmentOptions {
+    /// Gaussian smoothing before the gradients (speckle suppression). Not a paper parameter; default
+    /// 0.5 mm, about the axial resolution (speckle grain) of a 7 MHz probe, so it scales with the pixel
+    /// size (6 px on the PLUS spine data, 3.3 px at 0.15 mm/px). Without poses, 1 px = 1 mm.
+    pub smoothing_sigma: Length,
+    /// M as a fraction of the number of columns (of the clip rectangle), used unless `edgel_count` is set.
+    /// The paper only says M is smaller than the number of columns; default 0.5.
+    pub edgel_fraction: f64,
+    /// M, the number of edgels kept per frame, overriding `edgel_fraction`.
+    pub edgel_count: Option<usize>,
+    /// Edgels need a vertical gradient above this (grey levels per pixel); 0 keeps any non-flat pixel.
+    pub min_edgel_gradient: f64,
+    /// Prior inside the carried band, C1 = 1.0.
+    pub prior_inside: f64,
+    /// Prior outside the carried band, C0 = 0.2 (also the additive term of `P_new`).
+    pub prior_outside: f64,
+    /// Sigma of the Gaussian proximity weight, 15 px.
+    pub likelihood_sigma: Length,
+    /// The proximity weight is zero beyond this distance, 32 px.
+    pub likelihood_truncation: Length,
+    /// Threshold on `P_new` for the next band, T = 0.35.
+    pub threshold: f64,
+    /// A carried band holding fewer than this fraction of the M edgels has lost the boundary: warn and
+    /// re-initialise automatically on that frame. Default 0.02 (at least one edgel).
+    pub min_edgels_in_band_fraction: f64,
+    /// Smoothing for the automatic initial band (finds echo structures, not edges). Default 6 px.
+    pub auto_smoothing_sigma: Length,
+    /// Automatic init keeps every bright connected structure whose echo mass is at least this fraction of
+    /// the strongest one. Default 0.25.
+    pub auto_keep_fraction: f64,
+    /// Automatic init scores echoes by their brightness over the mean of the column below them (the
+    /// acoustic shadow of a boundary), from this far below... Default 8 px.
+    pub auto_shadow_offset: Length,
+    /// ...over this length. Default 64 px.
+    pub auto_shadow_length: Length,
+    /// Shrink the clip rectangle to the part of the frame that holds image data (the bounding box of the
+    /// pixels that are non-zero in any of up to 16 sampled frames), so the black margins of a scanner's
+    /// frame grab produce no edgels. Default true.
+    pub detect_data_region: bool,
+}
+
+impl Default for SegmentOptions {
+    fn default() -> Self {
+        SegmentOptions {
+            smoothing_sigma: Length::Mm(0.5),
+            edgel_fraction: 0.5,
+            edgel_count: None,
+            min_edgel_gradient: 0.0,
+            prior_inside: 1.0,
+            prior_outside: 0.2,
+            likelihood_sigma: Length::Px(15.0),
+            likelihood_truncation: Length::Px(32.0),
+            threshold: 0.35,
+            min_edgels_in_band_fraction: 0.02,
+            auto_smoothing_sigma: Length::Px(6.0),
+            auto_keep_fraction: 0.25,
+            auto_shadow_offset: Length::Px(8.0),
+            auto_shadow_length: Length::Px(64.0),
+            detect_data_region: true,
+        }
+    }
+}
+
+impl SegmentOptions {
+    /// Checks ranges; the message names the offending option.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |name: &str, why: &str| {
+            Err(Error::InvalidInput(format!("segment option {name}: {why}")))
+        };
+        let len_ok = |l: Length| match l {
+            Length::Px(x) | Length::Mm(x) => x.is_finite() && x >= 0.0,
+        };
+        if !len_ok(self.smoothing_sigma) {
+            return bad("smoothing_sigma", "must be finite and >= 0");
+        }
+        if !len_ok(self.auto_smoothing_sigma) {
+            return bad("auto_smoothing_sigma", "must be finite and >= 0");
+        }
+        if !len_ok(self.likelihood_sigma)
+            || matches!(self.likelihood_sigma, Length::Px(0.0) | Length::Mm(0.0))
+        {
+            return bad("likelihood_sigma", "must be finite and > 0");
+        }
+        if !len_ok(self.auto_shadow_offset) || !len_ok(self.auto_shadow_length) {
+            return bad("auto_shadow_offset/auto_shadow_length", "must be finite and >= 0");
+        }
+        if !len_ok(self.likelihood_truncation) {
+            return bad("likelihood_truncation", "must be finite and >= 0");
+        }
+        if !(self.edgel_fraction > 0.0 && self.edgel_fraction.is_finite()) {
+            return bad("edgel_fraction", "must be > 0");
+        }
+        if self.edgel_count == Some(0) {
+            return bad("edgel_count", "must be >= 1");
+        }
+        for (name, x) in [
+            ("min_edgel_gradient", self.min_edgel_gradient),
+            ("prior_inside", self.prior_inside),
+            ("prior_outside", self.prior_outside),
+            ("threshold", self.threshold),
+            (
+                "min_edgels_in_band_fraction",
+                self.min_edgels_in_band_fraction,
+            ),
+            ("auto_keep_fraction", self.auto_keep_fraction),
+        ] {
+            if !(x.is_finite() && x >= 0.0) {
+                return bad(name, "must be finite and >= 0");
+            }
+        }
+        if self.prior_inside + self.prior_outside < self.threshold {
+            return bad("threshold", "is above C1 + C0: no pixel could ever be kept");
+        }
+        if self.prior_outside >= self.threshold {
+            return bad("prior_outside", "C0 >= T would keep every pixel");
+        }
+        Ok(())
+    }
+}
+
+/// The band for the first frame of each sweep.
+#[derive(Debug, Clone, PartialEq)]
+pub enum InitialBand {
+    /// A mask of the frame's size, row-major, true = band.
+    Mask {
+        width: usize,
+        height: usize,
+        data: Vec<bool>,
+    },
+    /// A closed polygon in pixel coordinates (u = column, v = row) of the MF-oriented frame.
+    Polygon(Vec<[f64; 2]>),
+    /// Found automatically: the strongest connected echo structures, dilated into a band.
+    Auto,
+}
+
+/// Pixel-unit parameters actually used (after mm -> px conversion), reported for reproducibility.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ResolvedParameters {
+    pub pixel_size_mm: Option<f64>,
+    pub smoothing_sigma_px: f64,
+    pub likelihood_sigma_px: f64,
+    pub likelihood_truncation_px: f64,
+    pub edgel_count: usize,
+    /// Half-width of the band around an edgel that lay inside the carried band.
+    pub band_radius_inside_px: f64,
+    /// Radius kept around an edgel outside the carried band.
+    pub band_radius_outside_px: f64,
+}
+
+/// The kept pixels of every frame of a sequence.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BandMasks {
+    pub width: usize,
+    pub height: usize,
+    /// One mask per sequence frame, row-major, 255 = kept, 0 = dropped (all 0 for frames without a pose).
+    pub masks: Vec<Vec<u8>>,
+    /// Lost bands, re-initialisations, frames where nothing was found; each names its frame index.
+    pub warnings: Vec<String>,
+    /// Sequence frame indices where the band was (re-)initialised: sweep starts and recoveries.
+    pub initialised_frames: Vec<usize>,
+    /// Frame metadata (poses, timestamps) of the sequence, so the masks can be written as a PLUS file.
+    pub frames: Vec<TrackedFrame>,
+    /// Orientation written with the masks (MF plus the third letter of the source, if any).
+    pub orientation: String,
+    pub parameters: ResolvedParameters,
+}
+
+impl BandMasks {
+    /// Number of kept pixels in frame `index`.
+    pub fn kept_count(&self, index: usize) -> usize {
+        self.masks[index].iter().filter(|&&m| m != 0).count()
+    }
+
+    /// Fraction of all pixels of all frames that are kept.
+    pub fn kept_fraction(&self) -> f64 {
+        let total = self.width * self.height * self.masks.len();
+        if total == 0 {
+            return 0.0;
+        }
+        let kept: usize = (0..self.masks.len()).map(|i| self.kept_count(i)).sum();
+        kept as f64 / total as f64
+    }
+
+    /// The masks as a PLUS sequence (MET_UCHAR, same W x H x N and per-frame fields as the source).
+    pub fn to_sequence(&self) -> TrackedSequence {
+        let mut pixels = Vec::with_capacity(self.width * self.height * self.masks.len());
+        for m in &self.masks {
+            pixels.extend_from_slice(m);
+        }
+        TrackedSequence {
+            width: self.width,
+            height: self.height,
+            channels: 1,
+            orientation: self.orientation.clone(),
+            frames: self.frames.clone(),
+            pixels: PixelData::U8(pixels),
+            header: Default::default(),
+        }
+    }
+}
+
+/// Pixel size (mm) of a frame's Image->World matrix: mean length of its first two columns.
+fn pixel_size_of(image_to_world: &DMat4) -> f64 {
+    0.5 * (image_to_world.x_axis.truncate().length() + image_to_world.y_axis.truncate().length())
+}
+
+/// The clip rectangle intersected with the frame; `None` if it leaves nothing.
+fn effective_clip(clip: Option<ClipRect>, width: usize, height: usize) -> Option<ClipRect> {
+    let c = clip.unwrap_or(ClipRect {
+        origin_px: [0, 0],
+        size_px: [width, height],
+    });
+    let u0 = c.origin_px[0].min(width);
+    let v0 = c.origin_px[1].min(height);
+    let u1 = c.origin_px[0].saturating_add(c.size_px[0]).min(width);
+    let v1 = c.origin_px[1].saturating_add(c.size_px[1]).min(height);
+    (u1 > u0 && v1 > v0).then_some(ClipRect {
+        origin_px: [u0, v0],
+        size_px: [u1 - u0, v1 - v0],
+    })
+}
+
+/// Per-frame working state, reused from frame to frame (no per-frame or per-pixel allocation in the loop
+/// once the buffers have their size).
+#[derive(Debug, Default)]
+struct Workspace {
+    grey: Vec<f32>,
+    tmp: Vec<f32>,
+    smoothed: Vec<f32>,
+    edgels: Vec<Edgel>,
+    column: Vec<u32>,
+    dist_inside: Vec<f32>,
+    dist_outside: Vec<f32>,
+    labels: Vec<u32>,
+    stack: Vec<u32>,
+}
+
+/// The paper's step on one (clipped) frame: pixel-unit parameters and the proximity lookup table.
+#[derive(Debug)]
+struct Propagator {
+    width: usize,
+    height: usize,
+    taps: Vec<f32>,
+    auto_taps: Vec<f32>,
+    edgel_count: usize,
+    min_edgel_gradient: f32,
+    min_edgels_in_band: usize,
+    prior_inside: f32,
+    prior_outside: f32,
+    threshold: f32,
+    /// Distances are capped one pixel beyond the truncation.
+    cap_px: u32,
+    /// `G(sqrt(d2))` for integer squared distances `d2 < cap^2` (0 beyond the truncation).
+    proximity: Vec<f32>,
+    band_radius_inside_px: f64,
+    auto_keep_fraction: f32,
+    shadow_offset_px: usize,
+    shadow_length_px: usize,
+}
+
+impl Propagator {
+    fn proximity_at(&self, d2: f32) -> f32 {
+        let i = d2 as usize;
+        if i < self.proximity.len() {
+            self.proximity[i]
+        } else {
+            0.0
+        }
+    }
+
+    /// `band_out = (max_e P(e) G(|x - e|) + C0 >= T)` with `P(e)` from `prior_band`. Returns the number of
+    /// edgels that lay inside the prior band. `ws.smoothed` must hold the smoothed frame.
+    fn step(&self, ws: &mut Workspace, prior_band: &[bool], band_out: &mut Vec<bool>) -> usize {
+        use rayon::prelude::*;
+        let (w, h) = (self.width, self.height);
+        strongest_column_edgels(
+            &ws.smoothed,
+            w,
+            h,
+            self.edgel_count,
+            self.min_edgel_gradient,
+            &mut ws.edgels,
+        );
+        let inside = ws
+            .edgels
+            .iter()
+            .filter(|e| prior_band[e.index as usize])
+            .count();
+        let edgels = &ws.edgels;
+        squared_distance_capped(
+            edgels
+                .iter()
+                .filter(|e| prior_band[e.index as usize])
+                .map(|e| e.index as usize),
+            w,
+            h,
+            self.cap_px,
+            &mut ws.column,
+            &mut ws.dist_inside,
+        );
+        squared_distance_capped(
+            edgels
+                .iter()
+                .filter(|e| !prior_band[e.index as usize])
+                .map(|e| e.index as usize),
+            w,
+            h,
+            self.cap_px,
+            &mut ws.column,
+            &mut ws.dist_outside,
+        );
+        band_out.resize(w * h, false);
+        band_out
+            .par_chunks_mut(w)
+            .zip(
+                ws.dist_inside
+                    .par_chunks(w)
+                    .zip(ws.dist_outside.par_chunks(w)),
+            )
+            .for_each(|(dst, (din, dout))| {
+                for ((b, &di), &d_o) in dst.iter_mut().zip(din).zip(dout) {
+                    let l_p = (self.prior_inside * self.proximity_at(di))
+                        .max(self.prior_outside * self.proximity_at(d_o));
+                    *b = l_p + self.prior_outside >= self.threshold;
+                }
+            });
+        inside
+    }
+
+    /// Automatic band on the current frame (`ws.grey` holds it): bright connected structures of the
+    /// strongly smoothed frame, dilated by the in-band radius. Returns false if nothing was found.
+    fn auto_band(&self, ws: &mut Workspace, band: &mut Vec<bool>) -> bool {
+        let (w, h) = (self.width, self.height);
+        let mut smoothed = std::mem::take(&mut ws.tmp);
+        let mut scratch = Vec::new();
+        smooth(&ws.grey, w, h, &self.auto_taps, &mut scratch, &mut smoothed);
+        // Echo over shadow: a boundary is bright with dark below it (no penetration), while near-field
+        // reverberation and bright tissue layers have bright tissue below them.
+        shadow_contrast(&smoothed, w, h, self.shadow_offset_px, self.shadow_length_px, &mut scratch);
+        std::mem::swap(&mut smoothed, &mut scratch);
+        let seeds = find_echo_structures(
+            &smoothed,
+            w,
+            h,
+            self.auto_keep_fraction,
+            &mut ws.labels,
+            &mut ws.stack,
+        );
+        ws.tmp = smoothed;
+        band.clear();
+        band.resize(w * h, false);
+        if seeds.is_empty() {
+            return false;
+        }
+        squared_distance_capped(
+            seeds.iter().map(|&s| s as usize),
+            w,
+            h,
+            self.cap_px
+                .max(self.band_radius_inside_px.ceil() as u32 + 1),
+            &mut ws.column,
+            &mut ws.dist_inside,
+        );
+        let r2 = (self.band_radius_inside_px * self.band_radius_inside_px) as f32;
+        for (b, &d) in band.iter_mut().zip(&ws.dist_inside) {
+            *b = d <= r2;
+        }
+        true
+    }
+}
+
+/// Segments every frame: the paper's band propagation along each sweep (`crate::io::split_sweeps`), the
+/// initial band on the first frame of every sweep. Frames without a usable pose get all-zero masks. Pixels
+/// outside `clip` are never kept. Deterministic and independent of the thread count.
+pub fn segment_sequence(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    clip: Option<ClipRect>,
+    init: &InitialBand,
+    options: &SegmentOptions,
+    progress: &dyn Progress,
+) -> Result<BandMasks> {
+    options.validate()?;
+    let (width, height) = (sequence.width, sequence.height);
+    if sequence.is_tracking_only() || width == 0 || height == 0 {
+        return Err(Error::InvalidInput(
+            "cannot segment a tracking-only sequence (it has no images)".into(),
+        ));
+    }
+    let frame_count = sequence.frames.len();
+    if sequence.pixels.len() != sequence.frame_len() * frame_count {
+        return Err(Error::InvalidInput(format!(
+            "sequence pixel data holds {} values, expected {} ({}x{}x{} frames x {} channels)",
+            sequence.pixels.len(),
+            sequence.frame_len() * frame_count,
+            width,
+            height,
+            frame_count,
+            sequence.channels
+        )));
+    }
+    if let Some(&bad) = poses.poses.iter().find(|p| p.frame_index >= frame_count) {
+        return Err(Error::InvalidInput(format!(
+            "pose for frame {} but the sequence has {frame_count} frames",
+            bad.frame_index
+        )));
+    }
+    let init_full = match init {
+        InitialBand::Mask {
+            width: mw,
+            height: mh,
+            data,
+        } => {
+            if (*mw, *mh) != (width, height) || data.len() != width * height {
+                return Err(Error::InvalidInput(format!(
+                    "initial band mask is {mw}x{mh} but the frames are {width}x{height}"
+                )));
+            }
+            Some(data.clone())
+        }
+        InitialBand::Polygon(vertices) => Some(rasterize_polygon(vertices, width, height)?),
+        InitialBand::Auto => None,
+    };
+
+    let pixel_size_mm = poses
+        .poses
+        .first()
+        .map(|p| pixel_size_of(&p.image_to_world));
+    let needs_mm = [
+        options.smoothing_sigma,
+        options.likelihood_sigma,
+        options.likelihood_truncation,
+        options.auto_smoothing_sigma,
+    ]
+    .iter()
+    .any(|l| matches!(l, Length::Mm(_)));
+    let px_size = match pixel_size_mm {
+        Some(s) if s.is_finite() && s > 0.0 => s,
+        _ if needs_mm && !poses.poses.is_empty() => {
+            return Err(Error::InvalidInput(
+                "lengths in mm need a pixel size, but the poses give none".into(),
+            ));
+        }
+        _ => 1.0,
+    };
+    let mut clip = effective_clip(clip, width, height);
+    if options.detect_data_region
+        && let Some(c) = clip
+    {
+        clip = data_region(sequence, poses, c);
+    }
+    let orientation = {
+        let third = sequence.orientation.chars().nth(2);
+        let mut o = String::from("MF");
+        if let Some(c) = third {
+            o.push(c);
+        }
+        o
+    };
+    let mut masks = vec![vec![0u8; width * height]; frame_count];
+    let mut warnings = Vec::new();
+    let mut initialised_frames = Vec::new();
+
+    let sigma_px = options.likelihood_sigma.to_px(px_size);
+    let truncation_px = options.likelihood_truncation.to_px(px_size);
+    let (c1, c0, t) = (
+        options.prior_inside,
+        options.prior_outside,
+        options.threshold,
+    );
+    // P(e) G(d) + C0 >= T  <=>  d <= sigma sqrt(2 ln(P(e) / (T - C0))), within the truncation.
+    let radius_for = |p: f64| {
+        if p <= t - c0 {
+            0.0
+        } else {
+            (sigma_px * (2.0 * (p / (t - c0)).ln()).sqrt()).min(truncation_px)
+        }
+    };
+    let crop_width = clip.map_or(0, |c| c.size_px[0]);
+    let edgel_count = options
+        .edgel_count
+        .unwrap_or_else(|| ((options.edgel_fraction * crop_width as f64).round() as usize).max(1));
+    let parameters = ResolvedParameters {
+        pixel_size_mm,
+        smoothing_sigma_px: options.smoothing_sigma.to_px(px_size),
+        likelihood_sigma_px: sigma_px,
+        likelihood_truncation_px: truncation_px,
+        edgel_count,
+        band_radius_inside_px: radius_for(c1),
+        band_radius_outside_px: radius_for(c0),
+    };
+    let Some(clip) = clip else {
+        warnings.push("the clip rectangle lies outside the frame: every mask is empty".into());
+        return Ok(BandMasks {
+            width,
+            height,
+            masks,
+            warnings,
+            initialised_frames,
+            frames: sequence.frames.clone(),
+            orientation,
+            parameters,
+        });
+    };
+    let (cw, ch) = (clip.size_px[0], clip.size_px[1]);
+    let cap_px = truncation_px.floor() as u32 + 1;
+    let proximity: Vec<f32> = (0..(cap_px * cap_px))
+        .map(|d2| {
+            let d = (d2 as f64).sqrt();
+            if d <= truncation_px {
+                (-(d2 as f64) / (2.0 * sigma_px * sigma_px)).exp() as f32
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let propagator = Propagator {
+        width: cw,
+        height: ch,
+        taps: gaussian_taps(parameters.smoothing_sigma_px),
+        auto_taps: gaussian_taps(options.auto_smoothing_sigma.to_px(px_size)),
+        edgel_count,
+        min_edgel_gradient: options.min_edgel_gradient as f32,
+        min_edgels_in_band: ((options.min_edgels_in_band_fraction * edgel_count as f64).ceil()
+            as usize)
+            .max(1),
+        prior_inside: c1 as f32,
+        prior_outside: c0 as f32,
+        threshold: t as f32,
+        cap_px,
+        proximity,
+        band_radius_inside_px: parameters.band_radius_inside_px.max(1.0),
+        auto_keep_fraction: options.auto_keep_fraction as f32,
+        shadow_offset_px: options.auto_shadow_offset.to_px(px_size).round() as usize,
+        shadow_length_px: (options.auto_shadow_length.to_px(px_size).round() as usize).max(1),
+    };
+    let init_crop: Option<Vec<bool>> = init_full.map(|full| crop_bool(&full, width, clip));
+    if let Some(b) = &init_crop
+        && !b.iter().any(|&x| x)
+    {
+        return Err(Error::InvalidInput(
+            "the initial band covers no pixel inside the clip rectangle".into(),
+        ));
+    }
+
+    let mut ws = Workspace::default();
+    let mut prior: Vec<bool> = Vec::new();
+    let mut band: Vec<bool> = Vec::new();
+    let sweeps = crate::io::split_sweeps(sequence, poses);
+    let total: usize = sweeps.iter().map(|s| s.len()).sum();
+    progress.start("segment", total as u64);
+    let mut done = 0u64;
+    let mut seen = BTreeSet::new();
+    for sweep in sweeps {
+        for (k, pose_index) in sweep.enumerate() {
+            let frame = poses.poses[pose_index].frame_index;
+            if !seen.insert(frame) {
+                continue;
+            }
+            load_grey_crop(sequence, frame, clip, &mut ws.grey);
+            {
+                let Workspace {
+                    grey,
+                    tmp,
+                    smoothed,
+                    ..
+                } = &mut ws;
+                smooth(grey, cw, ch, &propagator.taps, tmp, smoothed);
+            }
+            let mut needs_auto = false;
+            if k == 0 {
+                initialised_frames.push(frame);
+                match &init_crop {
+                    Some(b) => prior.clone_from(b),
+                    None => needs_auto = true,
+                }
+            }
+            if !needs_auto {
+                let inside = propagator.step(&mut ws, &prior, &mut band);
+                if k > 0 && inside < propagator.min_edgels_in_band {
+                    warnings.push(format!(
+                        "frame {frame}: band lost ({inside} of {} edgels inside the carried band); \
+                         re-initialised automatically",
+                        ws.edgels.len()
+                    ));
+                    initialised_frames.push(frame);
+                    needs_auto = true;
+                }
+            }
+            if needs_auto {
+                if propagator.auto_band(&mut ws, &mut prior) {
+                    propagator.step(&mut ws, &prior, &mut band);
+                } else {
+                    warnings.push(format!(
+                        "frame {frame}: automatic initialisation found no echo structure; mask left empty"
+                    ));
+                    band.clear();
+                    band.resize(cw * ch, false);
+                }
+            }
+            if k > 0 && !needs_auto && !band.iter().any(|&b| b) {
+                warnings.push(format!("frame {frame}: the band is empty"));
+            }
+            paste_mask(&band, clip, width, &mut masks[frame]);
+            std::mem::swap(&mut prior, &mut band);
+            done += 1;
+            progress.advance(done);
+        }
+    }
+    progress.finish();
+    Ok(BandMasks {
+        width,
+        height,
+        masks,
+        warnings,
+        initialised_frames,
+        frames: sequence.frames.clone(),
+        orientation,
+        parameters,
+    })
+}
+
+/// The bounding box, inside `clip`, of the pixels that are non-zero in any of up to 16 frames spread over
+/// the posed frames; `None` if all are zero.
+pub fn data_region(sequence: &TrackedSequence, poses: &PoseResolution, clip: ClipRect) -> Option<ClipRect> {
+    let n = poses.poses.len();
+    if n == 0 {
+        return Some(clip);
+    }
+    let picks: BTreeSet<usize> = (0..n.min(16)).map(|k| poses.poses[k * n / n.min(16)].frame_index).collect();
+    let [u0, v0] = clip.origin_px;
+    let [cw, ch] = clip.size_px;
+    let (mut umin, mut umax, mut vmin, mut vmax) = (usize::MAX, 0, usize::MAX, 0);
+    let mut grey = Vec::new();
+    for f in picks {
+        load_grey_crop(sequence, f, clip, &mut grey);
+        for v in 0..ch {
+            let row = &grey[v * cw..(v + 1) * cw];
+            if let Some(first) = row.iter().position(|&x| x != 0.0) {
+                let last = row.iter().rposition(|&x| x != 0.0).unwrap_or(first);
+                umin = umin.min(first);
+                umax = umax.max(last);
+                vmin = vmin.min(v);
+                vmax = vmax.max(v);
+            }
+        }
+    }
+    (umin <= umax).then(|| ClipRect {
+        origin_px: [u0 + umin, v0 + vmin],
+        size_px: [umax - umin + 1, vmax - vmin + 1],
+    })
+}
+
+/// `out = max(0, s(u, v) - mean of s over rows v+offset .. v+offset+length of the same column)`, zero
+/// where the window leaves the image entirely.
+fn shadow_contrast(s: &[f32], w: usize, h: usize, offset: usize, length: usize, out: &mut Vec<f32>) {
+    // Column prefix sums, row by row: prefix[v * w + u] = sum of s over rows < v.
+    let mut prefix = vec![0f64; (h + 1) * w];
+    for v in 0..h {
+        for u in 0..w {
+            prefix[(v + 1) * w + u] = prefix[v * w + u] + s[v * w + u] as f64;
+        }
+    }
+    out.clear();
+    out.resize(w * h, 0.0);
+    for v in 0..h {
+        let a = (v + offset).min(h);
+        let b = (v + offset + length).min(h);
+        if b <= a {
+            continue;
+        }
+        let count = (b - a) as f64;
+        for u in 0..w {
+            let below = (prefix[b * w + u] - prefix[a * w + u]) / count;
+            out[v * w + u] = (s[v * w + u] as f64 - below).max(0.0) as f32;
+        }
+    }
+}
+
+/// Grey levels (channels averaged) of the clip rectangle of frame `index`.
+fn load_grey_crop(sequence: &TrackedSequence, index: usize, clip: ClipRect, out: &mut Vec<f32>) {
+    let (w, c) = (sequence.width, sequence.channels.max(1));
+    let [u0, v0] = clip.origin_px;
+    let [cw, ch] = clip.size_px;
+    out.clear();
+    out.reserve(cw * ch);
+    let base = index * sequence.frame_len();
+    match (&sequence.pixels, c) {
+        (PixelData::U8(data), 1) => {
+            for v in v0..v0 + ch {
+                let row = base + v * w + u0;
+                out.extend(data[row..row + cw].iter().map(|&x| x as f32));
+            }
+        }
+        _ => {
+            for v in v0..v0 + ch {
+                for u in u0..u0 + cw {
+                    out.push(sequence.pixel_f32(index, u, v));
+                }
+            }
+        }
+    }
+}
+
+fn crop_bool(full: &[bool], width: usize, clip: ClipRect) -> Vec<bool> {
+    let [u0, v0] = clip.origin_px;
+    let [cw, ch] = clip.size_px;
+    let mut out = Vec::with_capacity(cw * ch);
+    for v in v0..v0 + ch {
+        out.extend_from_slice(&full[v * width + u0..v * width + u0 + cw]);
+    }
+    out
+}
+
+fn paste_mask(band: &[bool], clip: ClipRect, width: usize, mask: &mut [u8]) {
+    let [u0, v0] = clip.origin_px;
+    let [cw, ch] = clip.size_px;
+    for r in 0..ch {
+        let dst = &mut mask[(v0 + r) * width + u0..(v0 + r) * width + u0 + cw];
+        for (d, &b) in dst.iter_mut().zip(&band[r * cw..(r + 1) * cw]) {
+            *d = if b { 255 } else { 0 };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

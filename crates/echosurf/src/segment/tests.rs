@@ -1,0 +1,427 @@
+use super::synthetic::{SyntheticSweep, synthetic_sweep};
+use super::*;
+use crate::io::{ClipRect, FramePose};
+use crate::progress::NoProgress;
+
+/// Share of the pixels within `radius_mm` of the true boundary that are kept, over `frames`, and the kept
+/// share of all pixels.
+fn coverage(
+    s: &SyntheticSweep,
+    masks: &BandMasks,
+    frames: impl Iterator<Item = usize>,
+    radius_mm: f64,
+) -> (f64, f64) {
+    let (w, h) = (s.sequence.width, s.sequence.height);
+    let r_px = radius_mm / s.pixel_size_mm;
+    let (mut near, mut near_kept, mut kept, mut all) = (0usize, 0usize, 0usize, 0usize);
+    for f in frames {
+        let m = &masks.masks[f];
+        kept += m.iter().filter(|&&x| x != 0).count();
+        all += w * h;
+        for u in 0..w {
+            let b = s.boundary_row(f, u as f64);
+            // The curve's slope is below 1, so every pixel within r of it is within 2r vertically.
+            let v_lo = (b - 2.0 * r_px).floor().max(0.0) as usize;
+            let v_hi = ((b + 2.0 * r_px).ceil() as usize).min(h - 1);
+            for v in v_lo..=v_hi {
+                if s.distance_to_boundary_px(f, u, v, r_px + 1.0) <= r_px {
+                    near += 1;
+                    near_kept += (m[v * w + u] != 0) as usize;
+                }
+            }
+        }
+    }
+    eprintln!("near-boundary pixels kept {near_kept}/{near}, kept {kept}/{all}");
+    (near_kept as f64 / near as f64, kept as f64 / all as f64)
+}
+
+fn polygon_around_first_boundary(s: &SyntheticSweep, half_width_px: f64) -> Vec<[f64; 2]> {
+    let w = s.sequence.width as f64;
+    let mut poly: Vec<[f64; 2]> = (0..=32)
+        .map(|k| {
+            let u = -1.0 + (w + 1.0) * k as f64 / 32.0;
+            [u, s.boundary_row(0, u) - half_width_px]
+        })
+        .collect();
+    poly.extend((0..=32).rev().map(|k| {
+        let u = -1.0 + (w + 1.0) * k as f64 / 32.0;
+        [u, s.boundary_row(0, u) + half_width_px]
+    }));
+    poly
+}
+
+#[test]
+fn auto_init_band_keeps_the_boundary_and_drops_most_pixels() {
+    let s = synthetic_sweep(320, 240, 10, 0.15, 3.0, 7);
+    let masks = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Auto,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    let (kept_near, kept_all) = coverage(&s, &masks, 0..10, 1.0);
+    assert!(
+        kept_near >= 0.99,
+        "kept {kept_near} of the pixels within 1 mm"
+    );
+    assert!(kept_all <= 0.30, "kept {kept_all} of all pixels");
+    assert!(masks.warnings.is_empty(), "{:?}", masks.warnings);
+    assert_eq!(masks.initialised_frames, vec![0]);
+}
+
+#[test]
+fn polygon_init_band_keeps_the_boundary_and_drops_most_pixels() {
+    let s = synthetic_sweep(320, 240, 10, 0.15, -4.0, 11);
+    let init = InitialBand::Polygon(polygon_around_first_boundary(&s, 15.0));
+    let masks = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &init,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    let (kept_near, kept_all) = coverage(&s, &masks, 0..10, 1.0);
+    assert!(
+        kept_near >= 0.99,
+        "kept {kept_near} of the pixels within 1 mm"
+    );
+    assert!(kept_all <= 0.30, "kept {kept_all} of all pixels");
+    assert!(masks.warnings.is_empty(), "{:?}", masks.warnings);
+}
+
+#[test]
+fn mm_lengths_convert_with_the_pixel_size() {
+    let s = synthetic_sweep(96, 80, 2, 0.2, 0.0, 1);
+    let options = SegmentOptions {
+        likelihood_sigma: Length::Mm(3.0),
+        likelihood_truncation: Length::Mm(6.4),
+        ..Default::default()
+    };
+    let masks = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Auto,
+        &options,
+        &NoProgress,
+    )
+    .unwrap();
+    let p = masks.parameters;
+    assert!((p.likelihood_sigma_px - 15.0).abs() < 1e-9);
+    assert!((p.likelihood_truncation_px - 32.0).abs() < 1e-9);
+    // sigma sqrt(2 ln(C1 / (T - C0))) and sigma sqrt(2 ln(C0 / (T - C0))) with the paper's values.
+    assert!((p.band_radius_inside_px - 15.0 * (2.0 * (1.0f64 / 0.15).ln()).sqrt()).abs() < 1e-9);
+    assert!((p.band_radius_outside_px - 15.0 * (2.0 * (0.2f64 / 0.15).ln()).sqrt()).abs() < 1e-9);
+}
+
+#[test]
+fn band_follows_the_boundary_and_is_centred_on_it() {
+    // A clean horizontal step moving 6 px per frame: the band must be the paper's +/-29 px around this
+    // frame's edge, not around the first frame's.
+    let (w, h, n) = (64usize, 160usize, 6usize);
+    let mut pixels = Vec::new();
+    for k in 0..n {
+        let edge = 40 + 6 * k;
+        for v in 0..h {
+            pixels.extend(std::iter::repeat_n(if v >= edge { 200u8 } else { 20 }, w));
+        }
+    }
+    let sequence = TrackedSequence {
+        width: w,
+        height: h,
+        channels: 1,
+        orientation: "MF".into(),
+        frames: vec![TrackedFrame::default(); n],
+        pixels: PixelData::U8(pixels),
+        header: Default::default(),
+    };
+    let poses = PoseResolution {
+        poses: (0..n)
+            .map(|k| FramePose {
+                frame_index: k,
+                image_to_world: DMat4::IDENTITY,
+            })
+            .collect(),
+        skipped: vec![],
+        world_frame: "Tracker".into(),
+    };
+    let init = InitialBand::Polygon(vec![[-1.0, 30.0], [70.0, 30.0], [70.0, 50.0], [-1.0, 50.0]]);
+    let masks = segment_sequence(
+        &sequence,
+        &poses,
+        None,
+        &init,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    for k in 0..n {
+        let rows: Vec<usize> = (0..h)
+            .filter(|&v| masks.masks[k][v * w + w / 2] != 0)
+            .collect();
+        // Edgel at row edge-1 (central difference peaks at edge - 0.5, maximum kept at the upper row);
+        // radius 29.2 px -> rows edge-1-29 ..= edge-1+29.
+        let edge = 40 + 6 * k;
+        assert_eq!(rows.first().copied(), Some(edge - 1 - 29), "frame {k}");
+        assert_eq!(rows.last().copied(), Some(edge - 1 + 29), "frame {k}");
+        assert_eq!(rows.len(), 59, "frame {k}");
+    }
+}
+
+#[test]
+fn clip_rectangle_and_invalid_frames_give_zero_pixels() {
+    let mut s = synthetic_sweep(160, 120, 4, 0.15, 0.0, 3);
+    // Frame 2 has no pose.
+    s.poses.poses.retain(|p| p.frame_index != 2);
+    let clip = ClipRect {
+        origin_px: [20, 10],
+        size_px: [100, 90],
+    };
+    let masks = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        Some(clip),
+        &InitialBand::Auto,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    assert!(masks.masks[2].iter().all(|&m| m == 0));
+    for f in [0, 1, 3] {
+        let m = &masks.masks[f];
+        assert!(m.iter().any(|&x| x == 255));
+        for v in 0..120 {
+            for u in 0..160 {
+                if !clip.contains(u, v) {
+                    assert_eq!(
+                        m[v * 160 + u],
+                        0,
+                        "frame {f} pixel ({u}, {v}) outside the clip"
+                    );
+                }
+            }
+        }
+    }
+    let seq = masks.to_sequence();
+    assert_eq!((seq.width, seq.height, seq.frames.len()), (160, 120, 4));
+    assert_eq!(seq.pixels.len(), 160 * 120 * 4);
+}
+
+#[test]
+fn lost_band_is_reported_with_its_frame_and_recovered() {
+    // Frames 0-4 and 7-11: one sweep whose boundary jumps 60 px deeper at frame 5 (probe re-placed);
+    // frame 6 is a black dropout.
+    let mut s = synthetic_sweep(320, 240, 12, 0.15, 0.0, 5);
+    let jumped = synthetic_sweep(320, 240, 12, 0.15, 0.0, 6);
+    let (w, h) = (320usize, 240usize);
+    let PixelData::U8(px) = &mut s.sequence.pixels else {
+        unreachable!()
+    };
+    for f in 0..12 {
+        if f >= 5 {
+            let [base, amp, freq, phase] = jumped.curves[f];
+            s.curves[f] = [base + 60.0, amp, freq, phase];
+        }
+    }
+    // Build the jumped frames by shifting the other sweep's rows down by 60 px.
+    let PixelData::U8(other) = &jumped.sequence.pixels else {
+        unreachable!()
+    };
+    for f in 5..12 {
+        for v in 0..h {
+            let src_v = v.saturating_sub(60);
+            let src = &other[f * w * h + src_v * w..f * w * h + (src_v + 1) * w];
+            px[f * w * h + v * w..f * w * h + (v + 1) * w].copy_from_slice(src);
+        }
+    }
+    px[6 * w * h..7 * w * h].fill(0);
+    let masks = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Polygon(polygon_around_first_boundary(&s, 15.0)),
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    assert!(
+        masks
+            .warnings
+            .iter()
+            .any(|w| w.starts_with("frame 5: band lost")),
+        "{:?}",
+        masks.warnings
+    );
+    assert!(
+        masks.warnings.iter().any(|w| w.starts_with("frame 6:")),
+        "{:?}",
+        masks.warnings
+    );
+    assert!(masks.initialised_frames.contains(&5) && masks.initialised_frames.contains(&7));
+    // Recovered: every frame but the black one keeps the boundary.
+    let (kept_near, kept_all) = coverage(&s, &masks, (0..12).filter(|&f| f != 6), 1.0);
+    assert!(kept_near >= 0.99, "kept {kept_near}");
+    assert!(kept_all <= 0.30, "kept {kept_all}");
+    assert!(masks.masks[6].iter().all(|&m| m == 0));
+}
+
+#[test]
+fn wrong_size_mask_and_empty_polygon_are_errors() {
+    let s = synthetic_sweep(64, 48, 2, 0.15, 0.0, 2);
+    let mask = InitialBand::Mask {
+        width: 10,
+        height: 10,
+        data: vec![true; 100],
+    };
+    let err = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &mask,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("10x10") && err.contains("64x48"), "{err}");
+    let err = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Polygon(vec![]),
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("0 vertices"), "{err}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty.json");
+    std::fs::write(&empty, r#"{"polygon": []}"#).unwrap();
+    let err = InitialBand::from_polygon_json(&empty)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("empty.json") && err.contains("0 vertices"),
+        "{err}"
+    );
+    let bad = dir.path().join("bad.json");
+    std::fs::write(&bad, r#"{"poly": [[1, 2]]"#).unwrap();
+    let err = InitialBand::from_polygon_json(&bad)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("bad.json"), "{err}");
+
+    // A PNG of the wrong size names the file and both sizes; a right-sized one round-trips.
+    let png_path = dir.path().join("band.png");
+    let mut bytes = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut bytes, 10, 8);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut wr = enc.write_header().unwrap();
+        let mut data = vec![0u8; 80];
+        data[13] = 255;
+        wr.write_image_data(&data).unwrap();
+    }
+    std::fs::write(&png_path, &bytes).unwrap();
+    let err = InitialBand::load(&png_path, 64, 48)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("band.png") && err.contains("10x8") && err.contains("64x48"),
+        "{err}"
+    );
+    match InitialBand::load(&png_path, 10, 8).unwrap() {
+        InitialBand::Mask {
+            width,
+            height,
+            data,
+        } => {
+            assert_eq!((width, height), (10, 8));
+            assert_eq!(data.iter().filter(|&&b| b).count(), 1);
+            assert!(data[13]);
+        }
+        other => panic!("expected a mask, got {other:?}"),
+    }
+    let not_png = dir.path().join("junk.png");
+    std::fs::write(&not_png, b"not a png").unwrap();
+    let err = InitialBand::from_png(&not_png).unwrap_err().to_string();
+    assert!(err.contains("junk.png"), "{err}");
+}
+
+#[test]
+fn bad_options_are_rejected_by_name() {
+    let s = synthetic_sweep(32, 32, 1, 0.15, 0.0, 2);
+    let options = SegmentOptions {
+        threshold: 0.1,
+        ..Default::default()
+    };
+    let err = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Auto,
+        &options,
+        &NoProgress,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("prior_outside"), "{err}");
+}
+
+#[test]
+fn result_does_not_depend_on_thread_count() {
+    let s = synthetic_sweep(200, 150, 3, 0.15, 2.0, 9);
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                segment_sequence(
+                    &s.sequence,
+                    &s.poses,
+                    None,
+                    &InitialBand::Auto,
+                    &SegmentOptions::default(),
+                    &NoProgress,
+                )
+                .unwrap()
+                .masks
+            })
+    };
+    assert_eq!(run(1), run(3));
+}
+
+#[test]
+fn preview_montage_is_written() {
+    let s = synthetic_sweep(120, 90, 4, 0.15, 1.0, 4);
+    let masks = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Auto,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("p.png");
+    let frames = default_preview_frames(&masks, 9);
+    assert_eq!(frames, vec![0, 1, 2, 3]);
+    write_band_preview(&path, &s.sequence, &masks, &frames).unwrap();
+    let decoder = png::Decoder::new(std::fs::File::open(&path).unwrap());
+    let reader = decoder.read_info().unwrap();
+    // 2 x 2 tiles of 120 x 90 with 4 px gaps.
+    assert_eq!(
+        (reader.info().width, reader.info().height),
+        (2 * 120 + 12, 2 * 90 + 12)
+    );
+}
