@@ -14,9 +14,9 @@
 //!    give a homeomorphic 2-manifold: it refuses every merge that would create an edge used by three or
 //!    more triangles, a pinched vertex (two sheets or two boundary arcs meeting in one point), a
 //!    duplicate triangle, or a collapsed tetrahedron/closed-up hole;
-//! 2. no triangle kept around `u` and `v` flips or degenerates when the merged vertex moves to the
-//!    cluster's centroid (its normal keeps a positive dot product with its old normal and its area stays
-//!    above a tiny fraction of a cell face).
+//! 2. no triangle kept around `u` and `v` folds over or degenerates when the merged vertex moves to the
+//!    cluster's centroid (its normal keeps a positive dot product with the mean normal of the triangles
+//!    around `u` and `v` before the merge, and its area stays above a tiny fraction of a cell face).
 //!
 //! Vertices of one cell that are not joined by an edge (two sheets passing through the cell) are never
 //! merged, so refused merges simply leave more than one vertex in that cell. Triangles containing the
@@ -127,19 +127,26 @@ impl Work {
         !eu.iter().any(|e| ev.binary_search(e).is_ok())
     }
 
-    /// Rule 2: the surviving triangles around u and v neither flip nor degenerate at the new position.
+    /// Rule 2: the surviving triangles around u and v neither fold over nor degenerate at the new
+    /// position. "Fold" is judged against the area-weighted mean normal of all triangles around u and v
+    /// before the merge (the raw slivers' own normals are too noisy to compare with).
     fn keeps_shape(&self, u: u32, v: u32, new_position: DVec3) -> bool {
+        let mut mean_normal = DVec3::ZERO;
+        for &x in &[u, v] {
+            for &f in &self.vertex_faces[x as usize] {
+                let t = self.faces[f as usize].map(|w| self.position(w));
+                mean_normal += (t[1] - t[0]).cross(t[2] - t[0]);
+            }
+        }
         for &x in &[u, v] {
             for &f in &self.vertex_faces[x as usize] {
                 let t = self.faces[f as usize];
                 if t.contains(&u) && t.contains(&v) {
                     continue;
                 }
-                let before = t.map(|w| self.position(w));
                 let after = t.map(|w| if w == u || w == v { new_position } else { self.position(w) });
-                let n_before = (before[1] - before[0]).cross(before[2] - before[0]);
                 let n_after = (after[1] - after[0]).cross(after[2] - after[0]);
-                if n_after.dot(n_before) <= 0.0 || n_after.length_squared() <= self.min_area2 {
+                if n_after.dot(mean_normal) <= 0.0 || n_after.length_squared() <= self.min_area2 {
                     return false;
                 }
             }

@@ -79,6 +79,11 @@ pub struct SurfaceOptions {
     pub trust_distance_mm: f64,
     /// How far (in cells, Chebyshev distance) a seed whose own cell is not crossed looks for the surface.
     pub seed_search_radius_cells: u32,
+    /// Size of the clustering cells relative to the lattice: the cells are the Voronoi cells of a
+    /// face-centred cubic lattice of volume `2 * factor^3 * resolution^3` each. 1.1 gives about half
+    /// the triangles of marching cubes on the same lattice, with well-shaped triangles; larger merges
+    /// more (coarser mesh), smaller keeps more of the lattice's detail.
+    pub cluster_cell_factor: f64,
     /// Newton steps at most per vertex when putting vertices back on the surface.
     pub max_newton_steps: u32,
     /// A vertex is on the surface when its first-order distance |s(x) - k| / |grad s| is below this.
@@ -91,6 +96,7 @@ impl Default for SurfaceOptions {
             resolution_mm: 0.5,
             trust_distance_mm: 3.0,
             seed_search_radius_cells: 2,
+            cluster_cell_factor: 1.1,
             max_newton_steps: 8,
             surface_tolerance_mm: 1e-4,
         }
@@ -109,6 +115,8 @@ pub struct LevelStats {
     pub triangles: usize,
     /// Vertex merges the clustering refused to keep the mesh manifold (or unfolded).
     pub refused_merges: usize,
+    /// Triangles still folded over (winding against the field normals) after untangling; 0 normally.
+    pub folded_triangles: usize,
     /// Vertices whose Newton iteration did not reach `surface_tolerance_mm` (left at their best position).
     pub unconverged_vertices: usize,
 }
@@ -176,7 +184,7 @@ pub fn extract_surfaces_with_stats(
     };
     let mut meshes = Vec::with_capacity(levels.len());
     for (&level, cells) in levels.iter().zip(&crossed.per_level) {
-        let raw = rmt::march_tetrahedra(&lattice, cells, level, |n| crossed.nodes.get(n));
+        let raw = rmt::march_tetrahedra(&lattice, cells, level, options.cluster_cell_factor, |n| crossed.nodes.get(n));
         let h = lattice.spacing_mm;
         let merged = clustering::cluster_vertices(&raw.positions, &raw.cluster_keys, &raw.triangles, h * h);
         let mut level_stats = LevelStats {
@@ -188,11 +196,22 @@ pub fn extract_surfaces_with_stats(
             triangles: merged.triangles.len(),
             refused_merges: merged.refused_merges,
             unconverged_vertices: 0,
+            folded_triangles: 0,
         };
-        let (vertices, mut normals, unconverged) =
+        let (mut vertices, mut normals, unconverged) =
             project_onto_surface(field, level, merged.positions, h, options, &mut counter);
-        finish_normals(&mut normals, &vertices, &merged.triangles);
         level_stats.unconverged_vertices = unconverged;
+        level_stats.folded_triangles = untangle(
+            field,
+            level,
+            &mut vertices,
+            &mut normals,
+            &merged.triangles,
+            h,
+            options,
+            &mut counter,
+        );
+        finish_normals(&mut normals, &vertices, &merged.triangles);
         meshes.push(Mesh {
             vertices,
             normals,
@@ -213,6 +232,12 @@ fn validate(levels: &[f64], options: &SurfaceOptions) -> Result<()> {
         return Err(Error::InvalidInput(format!(
             "trust distance must be a positive number of mm, got {}",
             options.trust_distance_mm
+        )));
+    }
+    if !(options.cluster_cell_factor.is_finite() && (0.5..=4.0).contains(&options.cluster_cell_factor)) {
+        return Err(Error::InvalidInput(format!(
+            "cluster cell factor must lie in 0.5..=4, got {}",
+            options.cluster_cell_factor
         )));
     }
     if options.seed_search_radius_cells > 16 {
@@ -279,6 +304,69 @@ fn project_onto_surface(
         steps += 1;
     }
     (positions, normals, unconverged)
+}
+
+/// Rounds of untangling after projection.
+const UNTANGLE_ROUNDS: usize = 3;
+
+/// Projection can fold a triangle over its neighbours (its winding normal then opposes the field
+/// normals at its corners). Each round moves the vertices of folded triangles to the centroid of their
+/// neighbours and projects them back onto the surface. Returns the triangles still folded.
+#[allow(clippy::too_many_arguments)]
+fn untangle(
+    field: &dyn ScalarField,
+    level: f64,
+    vertices: &mut [DVec3],
+    normals: &mut [DVec3],
+    triangles: &[[u32; 3]],
+    spacing_mm: f64,
+    options: &SurfaceOptions,
+    counter: &mut lattice::EvalCounter,
+) -> usize {
+    let folded = |vertices: &[DVec3], normals: &[DVec3]| -> Vec<usize> {
+        (0..triangles.len())
+            .filter(|&f| {
+                let t = triangles[f];
+                let [a, b, c] = t.map(|i| vertices[i as usize]);
+                let field_normal: DVec3 = t.iter().map(|&i| normals[i as usize]).sum();
+                (b - a).cross(c - a).dot(field_normal) <= 0.0
+            })
+            .collect()
+    };
+    let mut bad = folded(vertices, normals);
+    if bad.is_empty() {
+        return 0;
+    }
+    let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); vertices.len()];
+    for t in triangles {
+        for k in 0..3 {
+            neighbours[t[k] as usize].push(t[(k + 1) % 3]);
+            neighbours[t[k] as usize].push(t[(k + 2) % 3]);
+        }
+    }
+    for _ in 0..UNTANGLE_ROUNDS {
+        let mut moved: Vec<u32> = bad.iter().flat_map(|&f| triangles[f]).collect();
+        moved.sort_unstable();
+        moved.dedup();
+        let starts: Vec<DVec3> = moved
+            .iter()
+            .map(|&v| {
+                let n = &neighbours[v as usize];
+                n.iter().map(|&w| vertices[w as usize]).sum::<DVec3>() / n.len().max(1) as f64
+            })
+            .collect();
+        let (positions, new_normals, _) =
+            project_onto_surface(field, level, starts, spacing_mm, options, counter);
+        for (k, &v) in moved.iter().enumerate() {
+            vertices[v as usize] = positions[k];
+            normals[v as usize] = new_normals[k];
+        }
+        bad = folded(vertices, normals);
+        if bad.is_empty() {
+            break;
+        }
+    }
+    bad.len()
 }
 
 /// Unit normals from the field gradient; where it vanishes, the area-weighted normal of the faces.

@@ -30,10 +30,37 @@ pub(crate) const EDGE_T_MARGIN: f64 = 1e-4;
 pub(crate) struct RawSurface {
     /// Linearly interpolated vertex positions (mm).
     pub positions: Vec<DVec3>,
-    /// Packed node the vertex clusters to: the nearer end of its edge.
+    /// The vertex's clustering cell ([`cluster_key`]).
     pub cluster_keys: Vec<u64>,
     /// Triangles wound counter-clockwise seen from the lower-valued side.
     pub triangles: Vec<[u32; 3]>,
+}
+
+fn lattice_direction(d: usize) -> DVec3 {
+    let o = corner_offset(d);
+    DVec3::new(o[0] as f64, o[1] as f64, o[2] as f64)
+}
+
+/// The clustering cell of a point `q` given in clustering-lattice coordinates (lattice coordinates
+/// divided by the cluster scale): the Voronoi cell (a rhombic dodecahedron of volume 2 scale^3 h^3) of
+/// the nearest point with integer coordinates of even sum (the face-centred cubic lattice). The rhombic
+/// dodecahedron is the roundest space-filling cell, which keeps the merged triangles well shaped. The
+/// key is offset by one so it stays non-negative at the lattice's lower faces.
+pub(crate) fn cluster_key(q: DVec3) -> u64 {
+    let mut r = q.round();
+    if (r.x + r.y + r.z).rem_euclid(2.0) != 0.0 {
+        // Odd sum: move the coordinate that rounded farthest to its other neighbour.
+        let err = q - r;
+        let axis = if err.x.abs() >= err.y.abs() && err.x.abs() >= err.z.abs() {
+            0
+        } else if err.y.abs() >= err.z.abs() {
+            1
+        } else {
+            2
+        };
+        r[axis] += if err[axis] >= 0.0 { 1.0 } else { -1.0 };
+    }
+    pack([r.x as i32 + 1, r.y as i32 + 1, r.z as i32 + 1])
 }
 
 /// Marching tetrahedra over `cells` (packed keys, sorted: vertex numbering follows this order).
@@ -42,6 +69,7 @@ pub(crate) fn march_tetrahedra(
     lattice: &Lattice,
     cells: &[u64],
     level: f64,
+    cluster_scale: f64,
     value_at: impl Fn(Ijk) -> f64,
 ) -> RawSurface {
     let mut raw = RawSurface::default();
@@ -71,8 +99,12 @@ pub(crate) fn march_tetrahedra(
                     let pa = lattice.node_position(corners[a]);
                     let pb = lattice.node_position(corners[b]);
                     raw.positions.push(pa + (pb - pa) * t);
-                    raw.cluster_keys
-                        .push(pack(if t <= 0.5 { corners[a] } else { corners[b] }));
+                    let q = DVec3::new(
+                        corners[a][0] as f64,
+                        corners[a][1] as f64,
+                        corners[a][2] as f64,
+                    ) + lattice_direction(b - a) * t;
+                    raw.cluster_keys.push(cluster_key(q / cluster_scale));
                     (raw.positions.len() - 1) as u32
                 })
             };
@@ -131,6 +163,29 @@ pub(crate) fn march_tetrahedra(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cluster_key_is_the_nearest_even_node() {
+        for q in [
+            DVec3::new(0.2, 0.1, 0.0),
+            DVec3::new(0.6, 0.45, 0.1),
+            DVec3::new(2.9, 1.2, 3.4),
+            DVec3::new(0.0, 0.0, 0.9),
+        ] {
+            let mut best = (f64::INFINITY, [0i32; 3]);
+            for x in -1..5 {
+                for y in -1..5 {
+                    for z in -1..5 {
+                        let d = q.distance(DVec3::new(x as f64, y as f64, z as f64));
+                        if (x + y + z) % 2 == 0 && d < best.0 {
+                            best = (d, [x + 1, y + 1, z + 1]);
+                        }
+                    }
+                }
+            }
+            assert_eq!(cluster_key(q), pack(best.1), "{q}");
+        }
+    }
 
     #[test]
     fn kuhn_tetrahedra_tile_the_cube() {
