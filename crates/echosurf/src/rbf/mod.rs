@@ -1,0 +1,386 @@
+//! The biharmonic RBF engine: fit `s(x) = c0 + c.x + sum_i l_i |x - x_i|` to all samples, evaluate it fast.
+//!
+//! Fitting solves the smoothing-spline system `(A - wI) l + P c = f, P^T l = 0` (`A_ij = |x_i - x_j|`,
+//! P the linear trend; ALGORITHMS.md §1: with R(r) = r the smoothing enters with a minus sign so that
+//! `-(A - wI)` stays positive definite on `P^T l = 0`). The residual at a sample is `f_i - s(x_i) = -w l_i`.
+//! Small problems use a dense LU (the reference); large ones the treecode product inside preconditioned
+//! GMRES ([`fast`]). Near-duplicate samples are merged first; coplanar or tiny inputs get a reduced trend.
+
+mod bench_data;
+mod direct;
+mod fast;
+mod merge;
+mod model;
+mod tree;
+mod trend;
+
+use std::time::Instant;
+
+use glam::DVec3;
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+
+pub use bench_data::ultrasound_like_samples;
+pub use merge::merge_near_duplicates;
+pub use model::RbfModel;
+
+use crate::progress::Progress;
+use crate::{Error, Result};
+
+/// Which linear solver [`fit`] uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+pub enum SolverChoice {
+    /// Dense below [`FitOptions::direct_max_points`] points, fast above.
+    #[default]
+    Auto,
+    /// Dense LU, O(N^2) memory, O(N^3) time: the reference.
+    Direct,
+    /// Treecode + Schwarz-preconditioned GMRES.
+    Fast,
+}
+
+/// Parameters of [`fit`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitOptions {
+    /// Smoothing weight w >= 0, in mm (grey level per grey-level/mm): the fit satisfies
+    /// `f_i - s(x_i) = -w l_i`; larger is smoother, w = 0 interpolates, w -> infinity gives the
+    /// least-squares linear trend. Sensible values are comparable to the sample spacing or a few times it.
+    pub smoothing: f64,
+    /// Fitting accuracy in grey levels: the solve stops when `max_i |f_i - s(x_i) - w l_i| <= accuracy`
+    /// (at w = 0 this is the largest data misfit).
+    pub accuracy: f64,
+    /// Relative accuracy of the fast evaluator (far-field error relative to the sum of absolute
+    /// contributions); also used for the products inside the fast solver.
+    pub eval_accuracy: f64,
+    /// Upper bound on the number of centres; fewer than the samples implies greedy reduction.
+    pub max_centres: Option<usize>,
+    /// Greedy centre reduction (Carr et al. 2001): fit a subset, add the worst-fitted samples, repeat.
+    pub reduce_centres: bool,
+    /// Seed of the random initial subset of the centre reduction.
+    pub seed: u64,
+    /// Samples closer than this (mm) are merged into one, with the mean value.
+    pub merge_distance_mm: f64,
+    pub solver: SolverChoice,
+    /// Largest problem [`SolverChoice::Auto`] solves densely.
+    pub direct_max_points: usize,
+    /// Krylov iteration budget of the fast solver.
+    pub max_iterations: usize,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        FitOptions {
+            smoothing: 1.0,
+            accuracy: 2.0,
+            eval_accuracy: 1e-4,
+            max_centres: None,
+            reduce_centres: false,
+            seed: 0,
+            merge_distance_mm: 0.01,
+            solver: SolverChoice::Auto,
+            direct_max_points: 2000,
+            max_iterations: 1000,
+        }
+    }
+}
+
+/// What [`fit`] did.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct FitReport {
+    pub input_points: usize,
+    /// Samples after near-duplicate merging.
+    pub merged_points: usize,
+    pub centres: usize,
+    /// Krylov iterations summed over all solves (0 for the direct solver).
+    pub iterations: usize,
+    /// Greedy reduction rounds (0 without reduction).
+    pub reduction_rounds: usize,
+    /// Largest system residual `|f_i - s(x_i) - w l_i|` over the centres (grey levels).
+    pub max_residual: f64,
+    pub rms_residual: f64,
+    /// Number of linear-trend directions kept (4 normally; 3 for coplanar samples, ...).
+    pub trend_rank: usize,
+    pub solver: SolverChoice,
+    pub smoothing: f64,
+    pub fit_seconds: f64,
+    /// Bytes held by the largest solver structure (treecode, lists, preconditioner, Krylov basis).
+    pub solver_bytes: usize,
+}
+
+/// Fits the smoothing biharmonic spline to `values` at `points` (see [`FitOptions`]).
+pub fn fit(
+    points: &[DVec3],
+    values: &[f64],
+    options: &FitOptions,
+    progress: &dyn Progress,
+) -> Result<(RbfModel, FitReport)> {
+    let start = Instant::now();
+    validate(points, values, options)?;
+    let (pts, vals) = merge_near_duplicates(points, values, options.merge_distance_mm);
+    let reduce = options.reduce_centres || options.max_centres.is_some_and(|m| m < pts.len());
+    let mut report = FitReport {
+        input_points: points.len(),
+        merged_points: pts.len(),
+        centres: 0,
+        iterations: 0,
+        reduction_rounds: 0,
+        max_residual: 0.0,
+        rms_residual: 0.0,
+        trend_rank: 0,
+        solver: options.solver,
+        smoothing: options.smoothing,
+        fit_seconds: 0.0,
+        solver_bytes: 0,
+    };
+    let model = if reduce {
+        greedy_reduction(&pts, &vals, options, progress, &mut report)?
+    } else {
+        let sub = solve_subset(&pts, &vals, options, None, progress)?;
+        absorb(&mut report, &sub);
+        sub.model
+    };
+    report.centres = model.centres.len();
+    report.fit_seconds = start.elapsed().as_secs_f64();
+    Ok((model, report))
+}
+
+fn validate(points: &[DVec3], values: &[f64], options: &FitOptions) -> Result<()> {
+    if points.len() != values.len() {
+        return Err(Error::InvalidInput(format!(
+            "RBF fit: {} points but {} values",
+            points.len(),
+            values.len()
+        )));
+    }
+    if points.is_empty() {
+        return Err(Error::InvalidInput("RBF fit: no samples".into()));
+    }
+    if let Some(i) = points.iter().position(|p| !p.is_finite()) {
+        return Err(Error::InvalidInput(format!(
+            "RBF fit: sample {i} has a non-finite position {:?}",
+            points[i]
+        )));
+    }
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err(Error::InvalidInput(format!(
+            "RBF fit: sample {i} has a non-finite value {}",
+            values[i]
+        )));
+    }
+    let bad =
+        |what: &str, v: f64| Error::InvalidInput(format!("RBF fit: {what} {v} is out of range"));
+    if !(options.smoothing >= 0.0 && options.smoothing.is_finite()) {
+        return Err(bad("smoothing", options.smoothing));
+    }
+    if !(options.accuracy > 0.0 && options.accuracy.is_finite()) {
+        return Err(bad("accuracy (grey levels, > 0)", options.accuracy));
+    }
+    if !(options.eval_accuracy > 0.0 && options.eval_accuracy <= 0.1) {
+        return Err(bad(
+            "eval accuracy (relative, in (0, 0.1])",
+            options.eval_accuracy,
+        ));
+    }
+    if !(options.merge_distance_mm >= 0.0 && options.merge_distance_mm.is_finite()) {
+        return Err(bad("merge distance", options.merge_distance_mm));
+    }
+    if options.max_centres == Some(0) {
+        return Err(Error::InvalidInput(
+            "RBF fit: max centres must be at least 1".into(),
+        ));
+    }
+    Ok(())
+}
+
+fn absorb(report: &mut FitReport, sub: &SubsetFit) {
+    report.iterations += sub.iterations;
+    report.max_residual = sub.max_residual;
+    report.rms_residual = sub.rms_residual;
+    report.trend_rank = sub.trend_rank;
+    report.solver = sub.solver;
+    report.solver_bytes = report.solver_bytes.max(sub.solver_bytes);
+}
+
+struct SubsetFit {
+    model: RbfModel,
+    iterations: usize,
+    max_residual: f64,
+    rms_residual: f64,
+    trend_rank: usize,
+    solver: SolverChoice,
+    solver_bytes: usize,
+}
+
+/// Solves the full system on `pts` (every point a centre).
+fn solve_subset(
+    pts: &[DVec3],
+    vals: &[f64],
+    options: &FitOptions,
+    initial: Option<&[f64]>,
+    progress: &dyn Progress,
+) -> Result<SubsetFit> {
+    let basis = trend::TrendBasis::new(pts);
+    let n = pts.len();
+    let solver = match options.solver {
+        SolverChoice::Auto if n <= options.direct_max_points => SolverChoice::Direct,
+        SolverChoice::Auto => SolverChoice::Fast,
+        s => s,
+    };
+    let (coefficients, d, iterations, max_residual, rms_residual, solver_bytes) =
+        if n <= basis.rank() {
+            // No room for RBF terms: the (reduced) trend interpolates.
+            let u = basis.matrix(pts);
+            let r = basis.rank();
+            let d: Vec<f64> = (0..r)
+                .map(|k| (0..n).map(|i| u[i * r + k] * vals[i]).sum())
+                .collect();
+            (vec![0.0; n], d, 0, 0.0, 0.0, 0)
+        } else if solver == SolverChoice::Direct {
+            progress.start("fit: dense solve", 1);
+            let (l, d) = direct::solve_dense(pts, vals, options.smoothing, &basis)?;
+            progress.finish();
+            let (max_r, rms_r) = dense_residual(pts, vals, &l, &d, &basis, options.smoothing);
+            let bytes = (n + 4) * (n + 4) * 8;
+            (l, d, 0, max_r, rms_r, bytes)
+        } else {
+            let params = tree::TreecodeParams::for_accuracy(options.eval_accuracy);
+            let system = fast::FastSystem::new(pts, options.smoothing, &basis, params)?;
+            let sol = system.solve(
+                vals,
+                options.accuracy,
+                options.max_iterations,
+                initial,
+                progress,
+            )?;
+            let bytes = system.memory_bytes() + (40 + 6) * n * 8;
+            (
+                sol.coefficients,
+                sol.trend,
+                sol.iterations,
+                sol.max_residual,
+                sol.rms_residual,
+                bytes,
+            )
+        };
+    let (constant, linear) = basis.to_linear(&d);
+    let model = RbfModel::new(
+        pts.to_vec(),
+        coefficients,
+        basis.origin,
+        constant,
+        linear,
+        options.smoothing,
+        options.eval_accuracy,
+    );
+    Ok(SubsetFit {
+        model,
+        iterations,
+        max_residual,
+        rms_residual,
+        trend_rank: basis.rank(),
+        solver,
+        solver_bytes,
+    })
+}
+
+fn dense_residual(
+    pts: &[DVec3],
+    vals: &[f64],
+    l: &[f64],
+    d: &[f64],
+    basis: &trend::TrendBasis,
+    w: f64,
+) -> (f64, f64) {
+    let r = basis.rank();
+    let mut ub = vec![0.0; r];
+    let mut max_r: f64 = 0.0;
+    let mut sum_sq = 0.0;
+    for i in 0..pts.len() {
+        let mut s = -w * l[i];
+        for (p, lj) in pts.iter().zip(l) {
+            s += lj * (pts[i] - *p).length();
+        }
+        basis.eval(pts[i], &mut ub);
+        s += ub.iter().zip(d).map(|(a, b)| a * b).sum::<f64>();
+        let e = vals[i] - s;
+        max_r = max_r.max(e.abs());
+        sum_sq += e * e;
+    }
+    (max_r, (sum_sq / pts.len() as f64).sqrt())
+}
+
+/// Carr et al. (2001): start from a random 2 % subset, refit, add the worst-fitted samples in batches.
+fn greedy_reduction(
+    pts: &[DVec3],
+    vals: &[f64],
+    options: &FitOptions,
+    progress: &dyn Progress,
+    report: &mut FitReport,
+) -> Result<RbfModel> {
+    let n = pts.len();
+    let budget = options.max_centres.unwrap_or(n).min(n);
+    let mut order: Vec<usize> = (0..n).collect();
+    order.shuffle(&mut ChaCha8Rng::seed_from_u64(options.seed));
+    let initial = (n / 50).max(500.min(n)).min(budget);
+    let mut selected: Vec<usize> = order[..initial].to_vec();
+    selected.sort_unstable();
+    let mut is_centre = vec![false; n];
+    for &i in &selected {
+        is_centre[i] = true;
+    }
+    let mut previous: Option<(Vec<usize>, Vec<f64>)> = None;
+    loop {
+        report.reduction_rounds += 1;
+        let sub_pts: Vec<DVec3> = selected.iter().map(|&i| pts[i]).collect();
+        let sub_vals: Vec<f64> = selected.iter().map(|&i| vals[i]).collect();
+        // Warm start: old coefficients where the centre already existed.
+        let warm = previous.as_ref().map(|(idx, coef)| {
+            let mut w = vec![0.0; selected.len()];
+            let mut k = 0;
+            for (j, &s) in selected.iter().enumerate() {
+                while k < idx.len() && idx[k] < s {
+                    k += 1;
+                }
+                if k < idx.len() && idx[k] == s {
+                    w[j] = coef[k];
+                }
+            }
+            w
+        });
+        let sub = solve_subset(&sub_pts, &sub_vals, options, warm.as_deref(), progress)?;
+        absorb(report, &sub);
+        if selected.len() >= budget {
+            return Ok(sub.model);
+        }
+        // Non-centres must fit as well as the centres do (accuracy plus the smoothing misfit w|l|).
+        let smoothing_misfit = sub
+            .model
+            .coefficients
+            .iter()
+            .fold(0.0f64, |m, l| m.max((options.smoothing * l).abs()));
+        let threshold = options.accuracy + smoothing_misfit;
+        let others: Vec<usize> = (0..n).filter(|&i| !is_centre[i]).collect();
+        let other_pts: Vec<DVec3> = others.iter().map(|&i| pts[i]).collect();
+        let fitted = sub.model.values(&other_pts);
+        let mut bad: Vec<(f64, usize)> = others
+            .iter()
+            .zip(&fitted)
+            .map(|(&i, s)| ((vals[i] - s).abs(), i))
+            .filter(|(e, _)| *e > threshold)
+            .collect();
+        if bad.is_empty() {
+            return Ok(sub.model);
+        }
+        bad.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        let batch = (selected.len() / 2).max(100).min(budget - selected.len());
+        for &(_, i) in bad.iter().take(batch) {
+            is_centre[i] = true;
+        }
+        previous = Some((selected, sub.model.coefficients.clone()));
+        selected = (0..n).filter(|&i| is_centre[i]).collect();
+    }
+}
+
+#[cfg(test)]
+mod tests;
