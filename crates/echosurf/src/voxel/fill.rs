@@ -142,7 +142,7 @@ impl<T: Store> Grid<'_, T> {
             let find = |sign: i64, limit: i64| -> Option<(i64, f64)> {
                 let mut q = p;
                 let mut j = 1;
-                while j + 1 <= limit {
+                while j < limit {
                     for a in 0..3 {
                         q[a] += sign * d[a];
                     }
