@@ -7,7 +7,9 @@ use std::path::Path;
 
 use glam::DVec3;
 
-use super::{Compounding, HoleFilling, HoleFillingElement, Interpolation, VoxelOptions};
+use super::{
+    Compounding, HoleFilling, HoleFillingElement, Interpolation, PositionArithmetic, VoxelOptions,
+};
 use crate::io::ClipRect;
 use crate::{Error, FormatProblem, Result};
 
@@ -116,6 +118,18 @@ fn options_from_map(
             return Err(src.error(
                 FormatProblem::BadValue,
                 format!("Interpolation=\"{v}\": expected NEAREST_NEIGHBOR or LINEAR"),
+            ));
+        };
+    }
+    if let Some(v) = get("Optimization") {
+        o.position_arithmetic = if v.eq_ignore_ascii_case("FULL") {
+            PositionArithmetic::FixedPoint14
+        } else if v.eq_ignore_ascii_case("PARTIAL") || v.eq_ignore_ascii_case("NONE") {
+            PositionArithmetic::Double
+        } else {
+            return Err(src.error(
+                FormatProblem::BadValue,
+                format!("Optimization=\"{v}\": expected FULL, PARTIAL or NONE"),
             ));
         };
     }

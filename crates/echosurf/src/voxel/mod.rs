@@ -1,12 +1,14 @@
 //! The voxel route users take today (PLUS / 3D Slicer): splat pixels into a grid, fill holes, then
 //! marching cubes. Built in so echosurf can compare itself against it honestly on the same data.
 //!
-//! The conventions follow PLUS's `vtkPlusVolumeReconstructor` (PARTIAL optimisation, i.e. double
-//! arithmetic), so a volume made here can be checked voxel by voxel against one PLUS made:
+//! The conventions follow PLUS's `vtkPlusVolumeReconstructor`, so a volume made here can be
+//! checked voxel by voxel against one PLUS made:
 //! - output box: the clipped corners of every placed frame in the world frame; origin = their
-//!   minimum, `dims = ceil((max - min) / spacing) + 1`;
-//! - pixel (u, v) lands at `M * (u, v, 0, 1)` in voxel index space, rounded with `floor(x + 0.5)`
-//!   (nearest neighbour) or spread over the 8 surrounding voxels (trilinear);
+//!   minimum, `dims = round((max - min) / spacing) + 1` (see [`GridRounding`] for PLUS's
+//!   other versions);
+//! - pixel (u, v) lands at `M * (u, v, 0, 1)` in voxel index space (by default with PLUS's 14-bit
+//!   fixed-point matrix, see [`PositionArithmetic`]), rounded with `floor(x + 0.5)` (nearest
+//!   neighbour) or spread over the 8 surrounding voxels (trilinear, weights in double);
 //! - MEAN keeps PLUS's running mean with an accumulation buffer (256 per whole pixel, saturating at
 //!   65535) and PLUS's integer arithmetic, so rounding matches;
 //! - hole filling reads the unfilled volume and writes a new one (STICK, GAUSSIAN, ...), as
@@ -170,6 +172,34 @@ impl HoleFilling {
     }
 }
 
+/// Arithmetic of the pixel -> voxel-index mapping. PLUS's `Optimization="FULL"` (its default)
+/// quantises the mapping to fixed point with 14 fractional bits; the bits decide which voxel a
+/// pixel near a voxel boundary lands in, so matching PLUS voxel for voxel needs the same choice.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PositionArithmetic {
+    /// Matrix entries rounded to multiples of 2^-14, positions summed exactly in integers
+    /// (PLUS `FULL`).
+    #[default]
+    FixedPoint14,
+    /// Double precision (PLUS `PARTIAL` / `NONE`).
+    Double,
+}
+
+/// How the fitted grid's voxel count per axis follows from the frames' span: `count - 1 =
+/// round(span / spacing)`. PLUS changed this over time; all variants keep the origin at the
+/// frames' minimum corner.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GridRounding {
+    /// `floor(span / spacing + 0.5)`: the grid of PLUS's NN_MEAN regression reference
+    /// (147x106x105 on the spine sweep); every nearest-neighbour pixel lands inside.
+    #[default]
+    Nearest,
+    /// `ceil`: current PLUS (the grid always reaches past the farthest corner; 148x107x105).
+    Ceil,
+    /// `floor` (truncation): older PLUS (`SpinePhantomFreehandReconstructed.mha`, 147x106x104).
+    Floor,
+}
+
 /// Explicit output grid (PLUS `OutputOrigin` + `OutputExtent`): voxel (i, j, k) for i in
 /// `extent[0]..=extent[1]` etc. sits at `origin_mm + (i, j, k) * spacing`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -197,6 +227,10 @@ pub struct VoxelOptions {
     /// Extent override (PLUS `OutputExtent`, inclusive voxel index ranges x0 x1 y0 y1 z0 z1).
     /// Without it the grid is fitted to the frames.
     pub output_extent: Option<[i64; 6]>,
+    /// Voxel count rule of the fitted grid.
+    pub grid_rounding: GridRounding,
+    /// Fixed-point (PLUS default) or double pixel positions.
+    pub position_arithmetic: PositionArithmetic,
     /// Pixels darker than this are not inserted (PLUS `PixelRejectionThreshold`).
     pub pixel_rejection_threshold: Option<f64>,
     /// Insert every n-th placed frame (PLUS `SkipInterval`); the grid still covers all frames.
@@ -218,6 +252,8 @@ impl Default for VoxelOptions {
             clip: None,
             output_origin_mm: None,
             output_extent: None,
+            grid_rounding: GridRounding::default(),
+            position_arithmetic: PositionArithmetic::default(),
             pixel_rejection_threshold: None,
             skip_interval: 1,
             memory_budget_bytes: DEFAULT_MEMORY_BUDGET_BYTES,
@@ -476,7 +512,12 @@ pub fn grid_geometry(
     })?;
     let mut dims = [0usize; 3];
     for a in 0..3 {
-        let n = ((hi[a] - lo[a]) / spacing[a]).ceil();
+        let span = (hi[a] - lo[a]) / spacing[a];
+        let n = match options.grid_rounding {
+            GridRounding::Nearest => paste::plus_round(span),
+            GridRounding::Ceil => span.ceil(),
+            GridRounding::Floor => span.floor(),
+        };
         if !(n.is_finite() && n < MAX_AXIS_VOXELS) {
             return Err(Error::ResourceLimit(format!(
                 "the frames span {:.1} mm along axis {a}: at {} mm spacing that is {n:.0} voxels, more than the {MAX_AXIS_VOXELS} accepted; use a coarser spacing",

@@ -8,7 +8,9 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::{Compounding, GridGeometry, Interpolation, ReconstructionStats, VoxelOptions};
+use super::{
+    Compounding, GridGeometry, Interpolation, PositionArithmetic, ReconstructionStats, VoxelOptions,
+};
 use crate::io::{PoseResolution, TrackedSequence};
 use crate::progress::Progress;
 use crate::{Error, Result};
@@ -43,6 +45,15 @@ impl Store for f32 {
     fn put(v: f64) -> Self {
         v as f32
     }
+}
+
+/// One in PLUS's fixed-point type (14 fractional bits).
+const FIXED_ONE: i64 = 1 << 14;
+
+/// A double in PLUS's fixed point: nearest multiple of 2^-14, ties to even (PLUS adds a magic
+/// constant, which rounds the same way).
+fn to_fixed(x: f64) -> i64 {
+    (x * FIXED_ONE as f64).round_ties_even() as i64
 }
 
 /// PLUS's rounding of positions and values: `floor(x + 0.5)`.
@@ -162,22 +173,28 @@ pub(super) fn paste_frames<T: Store>(
         let grey = frame_grey(sequence, pose.frame_index, integer);
         let width = sequence.width;
         let keep = |v: f32| rejection.is_none_or(|t| v as f64 >= t);
-        // PLUS's incremental form: row start = origin + y * yAxis, pixel = row start + x * xAxis.
-        let position = |x: usize, row_start: DVec3| -> [f64; 3] {
-            let xf = x as f64;
-            [
-                row_start.x + xf * x_axis.x,
-                row_start.y + xf * x_axis.y,
-                row_start.z + xf * x_axis.z,
-            ]
-        };
-        let row_start = |y: usize| -> DVec3 {
-            let yf = y as f64;
-            DVec3::new(
-                origin.x + yf * y_axis.x,
-                origin.y + yf * y_axis.y,
-                origin.z + yf * y_axis.z,
-            )
+        // PLUS's incremental form: row start = origin + y * yAxis, pixel = row start + x * xAxis;
+        // in fixed point every term is an exact multiple of 2^-14.
+        let fixed = options.position_arithmetic == PositionArithmetic::FixedPoint14;
+        let q = |v: DVec3| -> [i64; 3] { [to_fixed(v.x), to_fixed(v.y), to_fixed(v.z)] };
+        let (qx, qy, qo) = (q(x_axis), q(y_axis), q(origin));
+        let position = |x: usize, y: usize| -> [f64; 3] {
+            if fixed {
+                let (xi, yi) = (x as i64, y as i64);
+                std::array::from_fn(|a| (qo[a] + yi * qy[a] + xi * qx[a]) as f64 / FIXED_ONE as f64)
+            } else {
+                let (xf, yf) = (x as f64, y as f64);
+                let start = [
+                    origin.x + yf * y_axis.x,
+                    origin.y + yf * y_axis.y,
+                    origin.z + yf * y_axis.z,
+                ];
+                [
+                    start[0] + xf * x_axis.x,
+                    start[1] + xf * x_axis.y,
+                    start[2] + xf * x_axis.z,
+                ]
+            }
         };
         let mut overflows = 0u64;
         match options.interpolation {
@@ -185,14 +202,13 @@ pub(super) fn paste_frames<T: Store>(
                 let rows: Vec<Vec<NnEntry>> = (y0..=y1)
                     .into_par_iter()
                     .map(|y| {
-                        let start = row_start(y);
                         let mut row = Vec::with_capacity(row_len);
                         for x in x0..=x1 {
                             let value = grey[y * width + x];
                             if !keep(value) {
                                 continue;
                             }
-                            let p = position(x, start);
+                            let p = position(x, y);
                             let i = plus_round(p[0]);
                             let j = plus_round(p[1]);
                             let k = plus_round(p[2]);
@@ -244,14 +260,13 @@ pub(super) fn paste_frames<T: Store>(
                 let rows: Vec<Vec<LinearEntry>> = (y0..=y1)
                     .into_par_iter()
                     .map(|y| {
-                        let start = row_start(y);
                         let mut row = Vec::with_capacity(row_len);
                         for x in x0..=x1 {
                             let value = grey[y * width + x];
                             if !keep(value) {
                                 continue;
                             }
-                            let p = position(x, start);
+                            let p = position(x, y);
                             // The 8 corners (floor, and ceil when there is a fraction) must all
                             // be inside, as in PLUS's trilinear bounds check.
                             let inside = (0..3).all(|a| {

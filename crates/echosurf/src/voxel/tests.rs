@@ -83,8 +83,18 @@ fn grid_is_fitted_to_clipped_frame_corners() {
     let p = poses(&[plane(0.3, 0.0), plane(0.3, 2.2)]);
     let opts = nn_mean();
     let g = grid_geometry(&seq, &p, &opts).unwrap();
-    // dims = ceil(span / spacing) + 1
-    assert_eq!(g.dims, [4, 3, 4]);
+    // dims = round(span / spacing) + 1: x 3.0 -> 4, y 1.2 -> 2, z 2.2 -> 3.
+    assert_eq!(g.dims, [4, 2, 3]);
+    let ceil = VoxelOptions {
+        grid_rounding: GridRounding::Ceil,
+        ..opts.clone()
+    };
+    assert_eq!(grid_geometry(&seq, &p, &ceil).unwrap().dims, [4, 3, 4]);
+    let floor = VoxelOptions {
+        grid_rounding: GridRounding::Floor,
+        ..opts.clone()
+    };
+    assert_eq!(grid_geometry(&seq, &p, &floor).unwrap().dims, [4, 2, 3]);
     assert!((g.origin_mm - DVec3::ZERO).length() < 1e-12);
     // A clip rectangle 2..(2+3) x 1..(1+10): far edge included, clamped to the image.
     let clipped = VoxelOptions {
@@ -96,8 +106,8 @@ fn grid_is_fitted_to_clipped_frame_corners() {
     };
     let g = grid_geometry(&seq, &p, &clipped).unwrap();
     assert!((g.origin_mm - DVec3::new(0.6, 0.3, 0.0)).length() < 1e-12);
-    // x: 0.6..1.5 mm -> ceil(0.9) + 1 = 2; y: 0.3..1.2 -> ceil(0.9) + 1 = 2.
-    assert_eq!(g.dims, [2, 2, 4]);
+    // x: 0.6..1.5 mm -> round(0.9) + 1 = 2; y: 0.3..1.2 -> 2.
+    assert_eq!(g.dims, [2, 2, 3]);
 }
 
 #[test]
