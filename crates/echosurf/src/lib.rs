@@ -12,6 +12,7 @@ pub mod error;
 pub mod io;
 pub mod mesh;
 pub mod metrics;
+pub mod pipeline;
 pub mod progress;
 pub mod rbf;
 pub mod render;

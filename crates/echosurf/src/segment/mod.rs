@@ -159,7 +159,10 @@ impl SegmentOptions {
             return bad("likelihood_sigma", "must be finite and > 0");
         }
         if !len_ok(self.auto_shadow_offset) || !len_ok(self.auto_shadow_length) {
-            return bad("auto_shadow_offset/auto_shadow_length", "must be finite and >= 0");
+            return bad(
+                "auto_shadow_offset/auto_shadow_length",
+                "must be finite and >= 0",
+            );
         }
         if !len_ok(self.likelihood_truncation) {
             return bad("likelihood_truncation", "must be finite and >= 0");
@@ -413,7 +416,14 @@ impl Propagator {
         smooth(&ws.grey, w, h, &self.auto_taps, &mut scratch, &mut smoothed);
         // Echo over shadow: a boundary is bright with dark below it (no penetration), while near-field
         // reverberation and bright tissue layers have bright tissue below them.
-        shadow_contrast(&smoothed, w, h, self.shadow_offset_px, self.shadow_length_px, &mut scratch);
+        shadow_contrast(
+            &smoothed,
+            w,
+            h,
+            self.shadow_offset_px,
+            self.shadow_length_px,
+            &mut scratch,
+        );
         std::mem::swap(&mut smoothed, &mut scratch);
         let seeds = find_echo_structures(
             &smoothed,
@@ -699,12 +709,18 @@ pub fn segment_sequence(
 
 /// The bounding box, inside `clip`, of the pixels that are non-zero in any of up to 16 frames spread over
 /// the posed frames; `None` if all are zero.
-pub fn data_region(sequence: &TrackedSequence, poses: &PoseResolution, clip: ClipRect) -> Option<ClipRect> {
+pub fn data_region(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    clip: ClipRect,
+) -> Option<ClipRect> {
     let n = poses.poses.len();
     if n == 0 {
         return Some(clip);
     }
-    let picks: BTreeSet<usize> = (0..n.min(16)).map(|k| poses.poses[k * n / n.min(16)].frame_index).collect();
+    let picks: BTreeSet<usize> = (0..n.min(16))
+        .map(|k| poses.poses[k * n / n.min(16)].frame_index)
+        .collect();
     let [u0, v0] = clip.origin_px;
     let [cw, ch] = clip.size_px;
     let (mut umin, mut umax, mut vmin, mut vmax) = (usize::MAX, 0, usize::MAX, 0);
@@ -730,7 +746,14 @@ pub fn data_region(sequence: &TrackedSequence, poses: &PoseResolution, clip: Cli
 
 /// `out = max(0, s(u, v) - mean of s over rows v+offset .. v+offset+length of the same column)`, zero
 /// where the window leaves the image entirely.
-fn shadow_contrast(s: &[f32], w: usize, h: usize, offset: usize, length: usize, out: &mut Vec<f32>) {
+fn shadow_contrast(
+    s: &[f32],
+    w: usize,
+    h: usize,
+    offset: usize,
+    length: usize,
+    out: &mut Vec<f32>,
+) {
     // Column prefix sums, row by row: prefix[v * w + u] = sum of s over rows < v.
     let mut prefix = vec![0f64; (h + 1) * w];
     for v in 0..h {

@@ -1,0 +1,415 @@
+//! The whole route from a tracked sequence to surfaces: segment -> samples -> reduce -> fit -> surface,
+//! with defaults derived from the data and a report of what every stage did, how long it took and how
+//! much memory it needed. The CLI's `extract`, `sample` and `demo` are thin wrappers around this.
+
+use glam::DVec3;
+
+use crate::io::pose::{clip_corners_px, frame_corners};
+use crate::io::{Calibration, PoseResolution, ReferenceChoice, TrackedSequence, resolve_poses};
+use crate::mesh::Mesh;
+use crate::progress::Progress;
+use crate::rbf::{FitOptions, FitReport, RbfModel};
+use crate::resources::{StageMeter, StageUsage};
+use crate::samples::{
+    IntensityLevels, SampleSet, collect_samples, estimate_levels, random_decimate,
+};
+use crate::segment::{
+    BandMasks, InitialBand, ResolvedParameters, SegmentOptions, segment_sequence,
+};
+use crate::surface::{SurfaceDomain, SurfaceOptions, SurfaceStats, extract_surfaces_with_stats};
+use crate::{Error, Result};
+
+/// Which iso-levels to extract.
+#[derive(Debug, Clone, PartialEq)]
+pub enum IsoLevels {
+    /// One level between the background and boundary echo levels of the kept pixels.
+    Auto,
+    /// These levels (grey levels of the fitted function), one surface each.
+    Levels(Vec<f64>),
+}
+
+/// Everything `extract` needs besides the data. `Default` is what the CLI uses without options.
+#[derive(Debug, Clone)]
+pub struct ExtractOptions {
+    pub iso: IsoLevels,
+    pub init: InitialBand,
+    pub segment: SegmentOptions,
+    pub reference: ReferenceChoice,
+    /// Random decimation target for the samples handed to the fit (the paper: ~10k keeps large features,
+    /// ~100k keeps detail).
+    pub max_samples: usize,
+    pub seed: u64,
+    pub fit: FitOptions,
+    pub surface: SurfaceOptions,
+    /// Region-of-trust radius in mm; `None` derives it from the frame spacing (see [`trust_distance_for`]).
+    pub trust_distance_mm: Option<f64>,
+}
+
+impl Default for ExtractOptions {
+    fn default() -> Self {
+        ExtractOptions {
+            iso: IsoLevels::Auto,
+            init: InitialBand::Auto,
+            segment: SegmentOptions::default(),
+            reference: ReferenceChoice::Auto,
+            max_samples: 100_000,
+            seed: 1,
+            fit: FitOptions::default(),
+            surface: SurfaceOptions::default(),
+            trust_distance_mm: None,
+        }
+    }
+}
+
+/// One extracted surface.
+#[derive(Debug, Clone)]
+pub struct ExtractedSurface {
+    pub level: f64,
+    pub mesh: Mesh,
+}
+
+/// Counts per stage.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct StageCounts {
+    pub frames: usize,
+    pub frames_used: usize,
+    /// Pixels of the frames used.
+    pub pixels: usize,
+    /// Pixels inside the bands.
+    pub kept_pixels: usize,
+    /// Samples handed to the fit after random decimation.
+    pub samples: usize,
+    pub centres: usize,
+    /// Triangles per surface, in level order.
+    pub triangles: Vec<usize>,
+}
+
+/// Parameters actually used, defaults resolved.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct UsedParameters {
+    pub iso_levels: Vec<f64>,
+    pub iso_auto: bool,
+    pub smoothing_mm: f64,
+    pub accuracy_grey: f64,
+    pub eval_accuracy: f64,
+    pub max_samples: usize,
+    pub seed: u64,
+    pub resolution_mm: f64,
+    pub trust_distance_mm: f64,
+    pub world_frame: String,
+    pub pixel_size_mm: [f64; 2],
+    pub median_frame_spacing_mm: Option<f64>,
+    pub segment: ResolvedParameters,
+}
+
+/// What `extract` did: the `--report` JSON.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ExtractReport {
+    pub parameters: UsedParameters,
+    /// Echo levels of the kept pixels (background, boundary, suggested iso).
+    pub levels: Option<IntensityLevels>,
+    pub counts: StageCounts,
+    pub fit: FitReport,
+    pub surface: SurfaceStats,
+    pub stages: Vec<StageUsage>,
+    pub total_seconds: f64,
+    pub peak_rss_bytes: Option<u64>,
+    pub warnings: Vec<String>,
+}
+
+/// Everything `extract` produced.
+#[derive(Debug)]
+pub struct ExtractOutput {
+    pub surfaces: Vec<ExtractedSurface>,
+    pub model: RbfModel,
+    pub samples: SampleSet,
+    /// The outline of every used frame's image (or clip rectangle) in the world, for preview overlays.
+    pub frame_outlines: Vec<[DVec3; 2]>,
+    pub report: ExtractReport,
+}
+
+/// The samples of a sequence and what it took to get them (shared by `extract` and `sample`).
+#[derive(Debug)]
+pub struct PreparedSamples {
+    pub poses: PoseResolution,
+    pub masks: BandMasks,
+    /// All kept pixels as samples.
+    pub all: SampleSet,
+    /// The decimated set handed to the fit.
+    pub samples: SampleSet,
+    pub levels: Option<IntensityLevels>,
+    pub counts: StageCounts,
+    pub pixel_size_mm: [f64; 2],
+}
+
+/// Places the frames, segments the bands and turns kept pixels into (decimated) samples.
+pub fn prepare_samples(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+    options: &ExtractOptions,
+    meter: &mut StageMeter,
+    progress: &dyn Progress,
+) -> Result<PreparedSamples> {
+    if sequence.is_tracking_only() {
+        return Err(Error::InvalidInput(
+            "the sequence has no images (tracking only): nothing to extract a surface from".into(),
+        ));
+    }
+    let poses = meter.stage("poses", || {
+        resolve_poses(
+            sequence,
+            calibration,
+            options.reference,
+            std::path::Path::new("<sequence>"),
+        )
+    })?;
+    let clip = calibration.and_then(|c| c.clip);
+    let masks = meter.stage("segment", || {
+        segment_sequence(
+            sequence,
+            &poses,
+            clip,
+            &options.init,
+            &options.segment,
+            progress,
+        )
+    })?;
+    let all = meter.stage("samples", || collect_samples(sequence, &poses, &masks));
+    if all.is_empty() {
+        return Err(Error::InvalidInput(
+            "segmentation kept no pixels: no samples to fit (check the initial band or the clip rectangle)"
+                .into(),
+        ));
+    }
+    let levels = estimate_levels(&all.intensities);
+    let samples = meter.stage("decimate", || {
+        random_decimate(&all, options.max_samples, options.seed)
+    });
+    let pixel_size_mm = calibration
+        .map(|c| c.pixel_size_mm())
+        .unwrap_or([f64::NAN, f64::NAN]);
+    let counts = StageCounts {
+        frames: sequence.frames.len(),
+        frames_used: poses.poses.len(),
+        pixels: poses.poses.len() * sequence.width * sequence.height,
+        kept_pixels: all.len(),
+        samples: samples.len(),
+        ..Default::default()
+    };
+    Ok(PreparedSamples {
+        poses,
+        masks,
+        all,
+        samples,
+        levels,
+        counts,
+        pixel_size_mm,
+    })
+}
+
+/// Region-of-trust radius from the data: three frame spacings (so the surface bridges the gaps between
+/// frames and the missing steep walls between neighbouring echoes), at least 2 mm and at most 10 mm.
+pub fn trust_distance_for(median_frame_spacing_mm: Option<f64>) -> f64 {
+    match median_frame_spacing_mm {
+        Some(s) if s.is_finite() && s > 0.0 => (3.0 * s).clamp(2.0, 10.0),
+        _ => 3.0,
+    }
+}
+
+/// Median distance between the image centres of consecutive used frames.
+pub fn median_frame_spacing_mm(sequence: &TrackedSequence, poses: &PoseResolution) -> Option<f64> {
+    let centres: Vec<DVec3> = poses
+        .poses
+        .iter()
+        .map(|p| crate::io::pose::image_centre(sequence, p))
+        .collect();
+    let mut steps: Vec<f64> = centres
+        .windows(2)
+        .map(|w| w[0].distance(w[1]))
+        .filter(|d| d.is_finite() && *d > 1e-6)
+        .collect();
+    if steps.is_empty() {
+        return None;
+    }
+    steps.sort_by(f64::total_cmp);
+    Some(steps[steps.len() / 2])
+}
+
+/// Checks requested iso-levels against the range of the fitted data: a level outside it has no surface.
+fn check_levels(levels: &[f64], samples: &SampleSet) -> Result<()> {
+    let (lo, hi) = samples
+        .intensities
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        });
+    for &level in levels {
+        if !level.is_finite() {
+            return Err(Error::InvalidInput(format!(
+                "iso-level {level} is not a number"
+            )));
+        }
+        if level <= lo as f64 || level >= hi as f64 {
+            return Err(Error::InvalidInput(format!(
+                "iso-level {level} is outside the grey levels of the kept pixels ({lo} to {hi}): it \
+                 would give no surface; use --iso auto or a level in that range"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Seeds for surface-following: samples whose grey level is near some iso-level (they sit close to the
+/// surface), spread over the data by a deterministic stride, at most `max` of them.
+fn surface_seeds(samples: &SampleSet, levels: &[f64], band: f64, max: usize) -> Vec<DVec3> {
+    let near: Vec<DVec3> = samples
+        .positions
+        .iter()
+        .zip(&samples.intensities)
+        .filter(|(_, v)| levels.iter().any(|&k| (**v as f64 - k).abs() <= band))
+        .map(|(p, _)| *p)
+        .collect();
+    let stride = near.len().div_ceil(max.max(1)).max(1);
+    near.into_iter().step_by(stride).collect()
+}
+
+/// Frame outlines (clip rectangle if any, else the image border) as world line segments.
+pub fn frame_outlines(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    calibration: Option<&Calibration>,
+) -> Vec<[DVec3; 2]> {
+    let clip = calibration
+        .and_then(|c| c.clip)
+        .and_then(|c| clip_corners_px(sequence.width, sequence.height, &c));
+    poses
+        .poses
+        .iter()
+        .flat_map(|p| {
+            let corners = match clip {
+                Some([u0, v0, u1, v1]) => [(u0, v0), (u1, v0), (u1, v1), (u0, v1)]
+                    .map(|(u, v)| p.image_to_world.transform_point3(DVec3::new(u, v, 0.0))),
+                None => frame_corners(sequence, p),
+            };
+            (0..4).map(move |i| [corners[i], corners[(i + 1) % 4]])
+        })
+        .collect()
+}
+
+/// The whole pipeline on an in-memory sequence.
+pub fn extract(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+    options: &ExtractOptions,
+    progress: &dyn Progress,
+) -> Result<ExtractOutput> {
+    let mut meter = StageMeter::new();
+    let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
+    let mut warnings = prepared.masks.warnings.clone();
+
+    let (levels, iso_auto) = match &options.iso {
+        IsoLevels::Auto => {
+            let l = prepared.levels.ok_or_else(|| {
+                Error::InvalidInput(
+                    "cannot choose an iso-level automatically: the kept pixels all have one grey level".into(),
+                )
+            })?;
+            (vec![l.iso as f64], true)
+        }
+        IsoLevels::Levels(v) if v.is_empty() => {
+            return Err(Error::InvalidInput("no iso-level given".into()));
+        }
+        IsoLevels::Levels(v) => (v.clone(), false),
+    };
+    check_levels(&levels, &prepared.samples)?;
+
+    let positions = &prepared.samples.positions;
+    let values: Vec<f64> = prepared
+        .samples
+        .intensities
+        .iter()
+        .map(|&v| v as f64)
+        .collect();
+    let (model, fit_report) = meter.stage("fit", || {
+        crate::rbf::fit(positions, &values, &options.fit, progress)
+    })?;
+
+    let spacing = median_frame_spacing_mm(sequence, &prepared.poses);
+    let trust_distance_mm = options
+        .trust_distance_mm
+        .unwrap_or_else(|| trust_distance_for(spacing));
+    let (lo, hi) = bounds(positions);
+    let margin = DVec3::splat(trust_distance_mm);
+    let seed_band = match prepared.levels {
+        Some(l) => 0.25 * (l.boundary - l.background).abs() as f64,
+        None => 10.0,
+    };
+    let domain = SurfaceDomain {
+        bounds_min_mm: lo - margin,
+        bounds_max_mm: hi + margin,
+        seeds: surface_seeds(&prepared.samples, &levels, seed_band.max(1.0), 20_000),
+        trust_points: positions.clone(),
+    };
+    let surface_options = SurfaceOptions {
+        trust_distance_mm,
+        ..options.surface.clone()
+    };
+    let (meshes, surface_stats) = meter.stage("surface", || {
+        extract_surfaces_with_stats(&model, &levels, &domain, &surface_options)
+    })?;
+    for (level, mesh) in levels.iter().zip(&meshes) {
+        if mesh.is_empty() {
+            warnings.push(format!(
+                "iso-level {level}: no surface found inside the region of trust"
+            ));
+        }
+    }
+
+    let mut counts = prepared.counts.clone();
+    counts.centres = fit_report.centres;
+    counts.triangles = meshes.iter().map(|m| m.triangles.len()).collect();
+    let report = ExtractReport {
+        parameters: UsedParameters {
+            iso_levels: levels.clone(),
+            iso_auto,
+            smoothing_mm: options.fit.smoothing,
+            accuracy_grey: options.fit.accuracy,
+            eval_accuracy: options.fit.eval_accuracy,
+            max_samples: options.max_samples,
+            seed: options.seed,
+            resolution_mm: surface_options.resolution_mm,
+            trust_distance_mm,
+            world_frame: prepared.poses.world_frame.clone(),
+            pixel_size_mm: prepared.pixel_size_mm,
+            median_frame_spacing_mm: spacing,
+            segment: prepared.masks.parameters,
+        },
+        levels: prepared.levels,
+        counts,
+        fit: fit_report,
+        surface: surface_stats,
+        total_seconds: meter.total_seconds(),
+        peak_rss_bytes: meter.peak_rss_bytes(),
+        stages: meter.stages,
+        warnings,
+    };
+    let frame_outlines = frame_outlines(sequence, &prepared.poses, calibration);
+    Ok(ExtractOutput {
+        surfaces: levels
+            .into_iter()
+            .zip(meshes)
+            .map(|(level, mesh)| ExtractedSurface { level, mesh })
+            .collect(),
+        model,
+        samples: prepared.samples,
+        frame_outlines,
+        report,
+    })
+}
+
+fn bounds(points: &[DVec3]) -> (DVec3, DVec3) {
+    points.iter().fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    )
+}
