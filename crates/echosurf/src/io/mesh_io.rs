@@ -78,7 +78,8 @@ fn check_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
             mesh.vertices.len()
         ));
     }
-    if u32::try_from(mesh.vertices.len()).is_err() || u32::try_from(mesh.triangles.len()).is_err() {
+    // PLY indices are written as `int`, STL counts triangles in a u32.
+    if i32::try_from(mesh.vertices.len()).is_err() || u32::try_from(mesh.triangles.len()).is_err() {
         return bad("mesh too large for the mesh file formats".into());
     }
     if let Some(i) = mesh.vertices.iter().position(|v| !v.is_finite()) {
