@@ -143,6 +143,26 @@ pub fn compare_meshes(mesh: &Mesh, truth: &Mesh, options: &CompareOptions) -> Re
     })
 }
 
+/// One flag per triangle of `mesh`: `keep(centroid, unit normal)`, e.g. to build
+/// [`CompareOptions::truth_mask`] from "swept and facing the beam". Degenerate triangles (no normal) and
+/// triangles with indices out of range get `false`.
+pub fn triangle_mask(mesh: &Mesh, keep: impl Fn(DVec3, DVec3) -> bool) -> Vec<bool> {
+    let n = mesh.vertices.len();
+    mesh.triangles
+        .iter()
+        .map(|t| {
+            if t.iter().any(|&i| i as usize >= n) {
+                return false;
+            }
+            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+            match (b - a).cross(c - a).try_normalize() {
+                Some(normal) => keep((a + b + c) / 3.0, normal),
+                None => false,
+            }
+        })
+        .collect()
+}
+
 /// Distance from each point to the nearest triangle of `mesh` (mm), in input order; `f64::INFINITY` for
 /// every point if the mesh has no triangles. Builds a [`TriangleBvh`]; keep one yourself for repeated
 /// queries against the same mesh.
@@ -483,6 +503,16 @@ mod tests {
             .iter()
             .map(|t| t.iter().all(|&i| sphere.vertices[i as usize].z > 4.0))
             .collect();
+        // The same cap through the public helper: centroid above the cut and normal pointing up-ish.
+        let by_helper = triangle_mask(&sphere, |centroid, normal| {
+            centroid.z > 4.0 && normal.z > 0.0
+        });
+        let agree = cap_flags
+            .iter()
+            .zip(&by_helper)
+            .filter(|(a, b)| a == b)
+            .count();
+        assert!(agree as f64 > 0.97 * cap_flags.len() as f64, "{agree}");
         let cap = Mesh {
             vertices: sphere.vertices.clone(),
             normals: vec![],
