@@ -103,7 +103,8 @@ fn usable(frame: &TrackedFrame, names: &[&str]) -> std::result::Result<DMat4, St
         .iter()
         .find_map(|n| frame.transforms.get(*n).map(|t| (*n, t)))
     else {
-        return Err(format!("no {}Transform", names[0]));
+        let wanted: Vec<String> = names.iter().map(|n| format!("{n}Transform")).collect();
+        return Err(format!("no {}", wanted.join(" or ")));
     };
     if !t.valid {
         return Err(format!("{name}Transform INVALID"));
@@ -172,7 +173,7 @@ fn frame_pose(
     }
     // The image plane must not collapse: the pixel axes must span a plane.
     let plane = m.x_axis.truncate().cross(m.y_axis.truncate()).length();
-    if !(plane > 0.0) {
+    if plane.is_nan() || plane <= 0.0 {
         return Err("Image->World singular (pixel axes collapse)".into());
     }
     Ok(m)

@@ -99,6 +99,9 @@ pub fn summarise(
     path: &Path,
 ) -> Result<SequenceSummary> {
     let mut notes = Vec::new();
+    if sequence.transform_names().is_empty() {
+        return Ok(untracked_summary(sequence, calibration));
+    }
     let probe_only = sequence.is_tracking_only()
         || (calibration.is_none() && needs_calibration(sequence, choice));
     let identity = Calibration::from_image_to_probe(DMat4::IDENTITY);
@@ -211,6 +214,58 @@ pub fn summarise(
     })
 }
 
+/// A file without any per-frame transform (a reconstructed volume, an untracked recording): described,
+/// but nothing can be placed. Not an error: the file is well-formed, it just is not a tracked sweep.
+fn untracked_summary(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+) -> SequenceSummary {
+    let mut notes = vec![
+        "no per-frame transforms: frames cannot be placed (a reconstructed volume or an untracked \
+         recording?)"
+            .to_string(),
+    ];
+    if let (Some(offset), Some(spacing)) = (
+        sequence.header.get("Offset"),
+        sequence.header.get("ElementSpacing"),
+    ) {
+        notes.push(format!(
+            "as a volume: origin {offset} mm, spacing {spacing} mm (header fields)"
+        ));
+    }
+    let timestamps: Vec<f64> = sequence
+        .frames
+        .iter()
+        .filter_map(|f| f.timestamp_s)
+        .collect();
+    SequenceSummary {
+        frames: sequence.frames.len(),
+        valid_frames: 0,
+        skipped: vec![SkipCount {
+            reason: "no transforms".into(),
+            frames: sequence.frames.len(),
+        }],
+        width: sequence.width,
+        height: sequence.height,
+        channels: sequence.channels,
+        element_type: (!sequence.is_tracking_only())
+            .then(|| sequence.pixels.element_type().metaimage_name().to_string()),
+        tracking_only: sequence.is_tracking_only(),
+        orientation: sequence.orientation.clone(),
+        transforms: Vec::new(),
+        world_frame: "none".into(),
+        pixel_size_mm: calibration.map(Calibration::pixel_size_mm),
+        clip: calibration.and_then(|c| c.clip),
+        first_timestamp_s: timestamps.first().copied(),
+        last_timestamp_s: timestamps.last().copied(),
+        tracked_point: TrackedPoint::ImageCentre,
+        sweeps: Vec::new(),
+        bounds_mm: None,
+        clip_bounds_mm: None,
+        notes,
+    }
+}
+
 impl SequenceSummary {
     /// Compact human-readable text (what `inspect` prints without `--json`).
     pub fn to_text(&self, name: &str) -> String {
@@ -248,7 +303,15 @@ impl SequenceSummary {
                 self.element_type.as_deref().unwrap_or("?"),
             );
         }
-        let _ = writeln!(s, "  transforms  {}", self.transforms.join(", "));
+        let _ = writeln!(
+            s,
+            "  transforms  {}",
+            if self.transforms.is_empty() {
+                "none".to_string()
+            } else {
+                self.transforms.join(", ")
+            }
+        );
         if let (Some(a), Some(b)) = (self.first_timestamp_s, self.last_timestamp_s) {
             let _ = writeln!(s, "  time        {a:.3} .. {b:.3} s ({:.2} s)", b - a);
         }
