@@ -42,7 +42,11 @@ impl SampleSet {
 
 /// Every kept pixel of every frame with a pose, mapped to the world. Frames without a pose contribute
 /// nothing (their masks are empty anyway); masks that do not match the sequence size are skipped.
-pub fn collect_samples(sequence: &TrackedSequence, poses: &PoseResolution, masks: &BandMasks) -> SampleSet {
+pub fn collect_samples(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    masks: &BandMasks,
+) -> SampleSet {
     let (w, h) = (sequence.width, sequence.height);
     let mut set = SampleSet::default();
     if (masks.width, masks.height) != (w, h) || sequence.is_tracking_only() {
@@ -57,7 +61,12 @@ pub fn collect_samples(sequence: &TrackedSequence, poses: &PoseResolution, masks
     ordered.dedup_by_key(|p| p.frame_index);
     let total: usize = ordered
         .iter()
-        .map(|p| masks.masks[p.frame_index].iter().filter(|&&m| m != 0).count())
+        .map(|p| {
+            masks.masks[p.frame_index]
+                .iter()
+                .filter(|&&m| m != 0)
+                .count()
+        })
         .sum();
     set.positions.reserve_exact(total);
     set.intensities.reserve_exact(total);
@@ -69,7 +78,8 @@ pub fn collect_samples(sequence: &TrackedSequence, poses: &PoseResolution, masks
         for v in 0..h {
             let row = &mask[v * w..(v + 1) * w];
             for (u, _) in row.iter().enumerate().filter(|(_, k)| **k != 0) {
-                set.positions.push(m.transform_point3(DVec3::new(u as f64, v as f64, 0.0)));
+                set.positions
+                    .push(m.transform_point3(DVec3::new(u as f64, v as f64, 0.0)));
                 set.intensities.push(sequence.pixel_f32(f, u, v));
                 set.frame_of_sample.push(f as u32);
             }
@@ -129,8 +139,10 @@ pub fn estimate_levels(intensities: &[f32]) -> Option<IntensityLevels> {
     let finite = intensities.iter().copied().filter(|x| x.is_finite());
     let (lo, hi) = finite
         .clone()
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), x| (a.min(x), b.max(x)));
-    if !(hi > lo) {
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), x| {
+            (a.min(x), b.max(x))
+        });
+    if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     let scale = (BINS - 1) as f64 / (hi - lo) as f64;
@@ -140,7 +152,11 @@ pub fn estimate_levels(intensities: &[f32]) -> Option<IntensityLevels> {
         hist[bin_of(x)] += 1;
     }
     let total: u64 = hist.iter().sum();
-    let sum_all: f64 = hist.iter().enumerate().map(|(i, &c)| i as f64 * c as f64).sum();
+    let sum_all: f64 = hist
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| i as f64 * c as f64)
+        .sum();
     let (mut w0, mut s0, mut best, mut split) = (0u64, 0.0f64, -1.0f64, 0usize);
     for (i, &c) in hist.iter().enumerate() {
         w0 += c;
@@ -183,7 +199,9 @@ mod tests {
     use super::*;
     use crate::io::FramePose;
     use crate::progress::NoProgress;
-    use crate::segment::{InitialBand, SegmentOptions, segment_sequence, synthetic::synthetic_sweep};
+    use crate::segment::{
+        InitialBand, SegmentOptions, segment_sequence, synthetic::synthetic_sweep,
+    };
     use glam::DMat4;
 
     #[test]
@@ -234,7 +252,10 @@ mod tests {
         let b = random_decimate(&set, 1234, 42);
         assert_eq!(a, b);
         assert_eq!(a.len(), 1234);
-        assert!(a.frame_of_sample.windows(2).all(|w| w[0] < w[1]), "order kept, no repeats");
+        assert!(
+            a.frame_of_sample.windows(2).all(|w| w[0] < w[1]),
+            "order kept, no repeats"
+        );
         let c = random_decimate(&set, 1234, 43);
         assert_ne!(a.frame_of_sample, c.frame_of_sample);
         assert_eq!(random_decimate(&set, 20_000, 1), set);
@@ -246,7 +267,11 @@ mod tests {
         // hypergeometric with sd ~ 20, so +/-100 (5 sd) never fails by chance in practice.
         let picked = random_decimate(&numbered(10_000), 5000, 7);
         for block in 0..10u32 {
-            let k = picked.frame_of_sample.iter().filter(|&&i| i / 1000 == block).count();
+            let k = picked
+                .frame_of_sample
+                .iter()
+                .filter(|&&i| i / 1000 == block)
+                .count();
             assert!((400..=600).contains(&k), "block {block}: {k}");
         }
     }

@@ -5,7 +5,8 @@ use std::path::PathBuf;
 use anyhow::Context;
 use echosurf::io::{self, ReferenceChoice};
 use echosurf::segment::{
-    InitialBand, Length, SegmentOptions, default_preview_frames, segment_sequence, write_band_preview,
+    InitialBand, Length, SegmentOptions, default_preview_frames, segment_sequence,
+    write_band_preview,
 };
 
 use crate::progress::BarProgress;
@@ -36,7 +37,7 @@ pub struct SegmentArgs {
     #[arg(long)]
     pub edgels: Option<usize>,
     /// M as a fraction of the number of columns.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.75)]
     pub edgel_fraction: f64,
     /// Prior inside the carried band (C1).
     #[arg(long, default_value_t = 1.0)]
@@ -73,7 +74,11 @@ impl SegmentArgs {
             _ => default,
         };
         SegmentOptions {
-            smoothing_sigma: length(self.smoothing_px, self.smoothing_mm, defaults.smoothing_sigma),
+            smoothing_sigma: length(
+                self.smoothing_px,
+                self.smoothing_mm,
+                defaults.smoothing_sigma,
+            ),
             edgel_fraction: self.edgel_fraction,
             edgel_count: self.edgels,
             prior_inside: self.prior_inside,
@@ -92,7 +97,11 @@ impl SegmentArgs {
     /// Reads everything and segments; returns the sequence, poses and masks.
     pub fn run(
         &self,
-    ) -> anyhow::Result<(io::TrackedSequence, io::PoseResolution, echosurf::segment::BandMasks)> {
+    ) -> anyhow::Result<(
+        io::TrackedSequence,
+        io::PoseResolution,
+        echosurf::segment::BandMasks,
+    )> {
         let world = match self.world.to_ascii_lowercase().as_str() {
             "auto" => ReferenceChoice::Auto,
             "tracker" => ReferenceChoice::Tracker,

@@ -54,6 +54,7 @@ use crate::io::{ClipRect, PixelData, PoseResolution, TrackedFrame, TrackedSequen
 use crate::progress::Progress;
 use crate::{Error, Result};
 
+pub use filters::EdgePolarity;
 use filters::{Edgel, gaussian_taps, smooth, squared_distance_capped, strongest_column_edgels};
 
 /// A length given in pixels of the frame or in millimetres (converted with the frames' pixel size).
@@ -81,10 +82,18 @@ pub struct SegmentOptions {
     /// size (6 px on the PLUS spine data, 3.3 px at 0.15 mm/px). Without poses, 1 px = 1 mm.
     pub smoothing_sigma: Length,
     /// M as a fraction of the number of columns (of the clip rectangle), used unless `edgel_count` is set.
-    /// The paper only says M is smaller than the number of columns; default 0.5.
+    /// The paper only says M is smaller than the number of columns; default 0.75 (with 0.5 the edgels
+    /// gather on the flattest, strongest stretches of a curved boundary and its steep flanks fall out of
+    /// the band once smoothing has removed the speckle).
     pub edgel_fraction: f64,
     /// M, the number of edgels kept per frame, overriding `edgel_fraction`.
     pub edgel_count: Option<usize>,
+    /// Which vertical gradients count. The paper keeps "the M largest vertical intensity gradients"; we
+    /// read "largest" on the signed derivative down the column, i.e. [`EdgePolarity::Rising`] (default):
+    /// entering a bright echo from the probe side, where the interface facing the probe lies. This gives
+    /// one edgel per column crossing of a boundary; `Both` also counts the echo's far side, which halves
+    /// how many columns M edgels cover.
+    pub edgel_polarity: EdgePolarity,
     /// Edgels need a vertical gradient above this (grey levels per pixel); 0 keeps any non-flat pixel.
     pub min_edgel_gradient: f64,
     /// Prior inside the carried band, C1 = 1.0.
@@ -120,8 +129,9 @@ impl Default for SegmentOptions {
     fn default() -> Self {
         SegmentOptions {
             smoothing_sigma: Length::Mm(0.5),
-            edgel_fraction: 0.5,
+            edgel_fraction: 0.75,
             edgel_count: None,
+            edgel_polarity: EdgePolarity::Rising,
             min_edgel_gradient: 0.0,
             prior_inside: 1.0,
             prior_outside: 0.2,
@@ -159,7 +169,10 @@ impl SegmentOptions {
             return bad("likelihood_sigma", "must be finite and > 0");
         }
         if !len_ok(self.auto_shadow_offset) || !len_ok(self.auto_shadow_length) {
-            return bad("auto_shadow_offset/auto_shadow_length", "must be finite and >= 0");
+            return bad(
+                "auto_shadow_offset/auto_shadow_length",
+                "must be finite and >= 0",
+            );
         }
         if !len_ok(self.likelihood_truncation) {
             return bad("likelihood_truncation", "must be finite and >= 0");
@@ -321,6 +334,7 @@ struct Propagator {
     auto_taps: Vec<f32>,
     edgel_count: usize,
     min_edgel_gradient: f32,
+    polarity: EdgePolarity,
     min_edgels_in_band: usize,
     prior_inside: f32,
     prior_outside: f32,
@@ -356,6 +370,7 @@ impl Propagator {
             h,
             self.edgel_count,
             self.min_edgel_gradient,
+            self.polarity,
             &mut ws.edgels,
         );
         let inside = ws
@@ -413,7 +428,14 @@ impl Propagator {
         smooth(&ws.grey, w, h, &self.auto_taps, &mut scratch, &mut smoothed);
         // Echo over shadow: a boundary is bright with dark below it (no penetration), while near-field
         // reverberation and bright tissue layers have bright tissue below them.
-        shadow_contrast(&smoothed, w, h, self.shadow_offset_px, self.shadow_length_px, &mut scratch);
+        shadow_contrast(
+            &smoothed,
+            w,
+            h,
+            self.shadow_offset_px,
+            self.shadow_length_px,
+            &mut scratch,
+        );
         std::mem::swap(&mut smoothed, &mut scratch);
         let seeds = find_echo_structures(
             &smoothed,
@@ -598,6 +620,7 @@ pub fn segment_sequence(
         auto_taps: gaussian_taps(options.auto_smoothing_sigma.to_px(px_size)),
         edgel_count,
         min_edgel_gradient: options.min_edgel_gradient as f32,
+        polarity: options.edgel_polarity,
         min_edgels_in_band: ((options.min_edgels_in_band_fraction * edgel_count as f64).ceil()
             as usize)
             .max(1),
@@ -699,12 +722,18 @@ pub fn segment_sequence(
 
 /// The bounding box, inside `clip`, of the pixels that are non-zero in any of up to 16 frames spread over
 /// the posed frames; `None` if all are zero.
-pub fn data_region(sequence: &TrackedSequence, poses: &PoseResolution, clip: ClipRect) -> Option<ClipRect> {
+pub fn data_region(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    clip: ClipRect,
+) -> Option<ClipRect> {
     let n = poses.poses.len();
     if n == 0 {
         return Some(clip);
     }
-    let picks: BTreeSet<usize> = (0..n.min(16)).map(|k| poses.poses[k * n / n.min(16)].frame_index).collect();
+    let picks: BTreeSet<usize> = (0..n.min(16))
+        .map(|k| poses.poses[k * n / n.min(16)].frame_index)
+        .collect();
     let [u0, v0] = clip.origin_px;
     let [cw, ch] = clip.size_px;
     let (mut umin, mut umax, mut vmin, mut vmax) = (usize::MAX, 0, usize::MAX, 0);
@@ -730,7 +759,14 @@ pub fn data_region(sequence: &TrackedSequence, poses: &PoseResolution, clip: Cli
 
 /// `out = max(0, s(u, v) - mean of s over rows v+offset .. v+offset+length of the same column)`, zero
 /// where the window leaves the image entirely.
-fn shadow_contrast(s: &[f32], w: usize, h: usize, offset: usize, length: usize, out: &mut Vec<f32>) {
+fn shadow_contrast(
+    s: &[f32],
+    w: usize,
+    h: usize,
+    offset: usize,
+    length: usize,
+    out: &mut Vec<f32>,
+) {
     // Column prefix sums, row by row: prefix[v * w + u] = sum of s over rows < v.
     let mut prefix = vec![0f64; (h + 1) * w];
     for v in 0..h {
