@@ -42,9 +42,10 @@ pub fn truth_meshes(
         seeds: Vec::new(),
         trust_points: Vec::new(),
     };
+    // No trust points: the whole lattice is evaluated, nothing is clipped.
     let options = SurfaceOptions {
         resolution_mm,
-        trust_distance_mm: f64::INFINITY,
+        ..SurfaceOptions::default()
     };
     let surfaces = phantom.surfaces();
     progress.start("truth", surfaces.len() as u64);
