@@ -7,7 +7,7 @@
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::{BufReader, Write};
+use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 
 use super::atomic::write_atomic;
@@ -75,9 +75,17 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
             continue;
         }
         let Some((key, value)) = text.split_once('=') else {
+            let at_end = reader
+                .fill_buf()
+                .map_err(|e| Error::io(path, e))?
+                .is_empty();
             return Err(Error::format(
                 path,
-                FormatProblem::Corrupt,
+                if at_end {
+                    FormatProblem::Truncated
+                } else {
+                    FormatProblem::Corrupt
+                },
                 format!(
                     "header line {line_number} is not `Key = Value`: {:?}",
                     truncate_for_message(text)
@@ -105,12 +113,8 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
     let Some(data_file) = data_file else {
         return Err(Error::format(
             path,
-            if consumed == 0 {
-                FormatProblem::Truncated
-            } else {
-                FormatProblem::MissingField
-            },
-            "header has no ElementDataFile line (file truncated or not a MetaImage)",
+            FormatProblem::Truncated,
+            "file ends before the header's ElementDataFile line (truncated?)",
         ));
     };
 
@@ -180,7 +184,7 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
     };
     // Tracker-only recordings carry no image: MET_OTHER, or a 0 x 0 / 1 x 1 placeholder.
     let tracking_only =
-        element_is_other || layout.width * layout.height == 0 || (dims[0] == 1 && dims[1] == 1);
+        element_is_other || dims[0] == 0 || dims[1] == 0 || (dims[0] == 1 && dims[1] == 1);
 
     let bytes = if tracking_only {
         // No pixels are read, so the frame count is only bounded by the per-frame fields present.

@@ -191,7 +191,7 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
         element,
         big_endian,
     };
-    let tracking_only = width * height == 0;
+    let tracking_only = width == 0 || height == 0;
     let bytes = if tracking_only {
         if frames > frame_fields.len() + 1 {
             return Err(Error::format(

@@ -1,0 +1,365 @@
+//! Vertex clustering ("regularisation") that keeps the mesh an oriented 2-manifold.
+//!
+//! Every raw vertex belongs to the clustering cell of the lattice node nearest to it along its edge (the
+//! cells are the lattice cubes shifted by half a spacing). Within a cell, vertices are merged by
+//! contracting mesh edges joining two of them, one edge at a time, in a fixed order. **The rule**: an edge
+//! `uv` is contracted only if
+//!
+//! 1. it satisfies the *link condition* (Dey, Edelsbrunner et al. 1999):
+//!    `Lk(u) ∩ Lk(v) = Lk(uv)`, where links are taken after coning the boundary to a virtual vertex ω
+//!    (so a boundary vertex's link contains ω and the edges from ω to its boundary neighbours).
+//!    Concretely: the common neighbours of `u` and `v` are exactly the apexes of the (one or two)
+//!    triangles on `uv` (plus ω exactly when `uv` is a boundary edge), and no edge lies in both links.
+//!    This is necessary and sufficient for the contraction of an edge of a 2-manifold (with boundary) to
+//!    give a homeomorphic 2-manifold: it refuses every merge that would create an edge used by three or
+//!    more triangles, a pinched vertex (two sheets or two boundary arcs meeting in one point), a
+//!    duplicate triangle, or a collapsed tetrahedron/closed-up hole;
+//! 2. no triangle kept around `u` and `v` folds over or degenerates when the merged vertex moves to the
+//!    cluster's centroid (its normal keeps a positive dot product with the mean normal of the triangles
+//!    around `u` and `v` before the merge, and its area stays above a tiny fraction of a cell face).
+//!
+//! Vertices of one cell that are not joined by an edge (two sheets passing through the cell) are never
+//! merged, so refused merges simply leave more than one vertex in that cell. Triangles containing the
+//! contracted edge disappear; the others keep their winding, so orientation survives.
+
+use glam::DVec3;
+
+/// The merged mesh: positions (cluster centroids, before projection onto the surface) and triangles.
+#[derive(Debug, Default)]
+pub(crate) struct ClusteredSurface {
+    pub positions: Vec<DVec3>,
+    pub triangles: Vec<[u32; 3]>,
+    /// Merges refused by the rule above.
+    pub refused_merges: usize,
+}
+
+const OMEGA: u32 = u32::MAX;
+
+struct Work {
+    pos_sum: Vec<DVec3>,
+    weight: Vec<f64>,
+    faces: Vec<[u32; 3]>,
+    face_alive: Vec<bool>,
+    vertex_faces: Vec<Vec<u32>>,
+    min_area2: f64,
+}
+
+impl Work {
+    fn position(&self, v: u32) -> DVec3 {
+        self.pos_sum[v as usize] / self.weight[v as usize]
+    }
+
+    fn adjacent(&self, a: u32, b: u32) -> bool {
+        self.vertex_faces[a as usize]
+            .iter()
+            .any(|&f| self.faces[f as usize].contains(&b))
+    }
+
+    /// Vertex part (sorted neighbours, plus ω if on the boundary) and edge part (sorted pairs) of Lk(x).
+    fn link(&self, x: u32) -> (Vec<u32>, Vec<(u32, u32)>) {
+        let mut verts = Vec::with_capacity(12);
+        let mut edges = Vec::with_capacity(12);
+        // Directed edges out of and into x: a boundary edge appears in one direction only.
+        let mut out_of = Vec::with_capacity(8);
+        let mut into = Vec::with_capacity(8);
+        for &f in &self.vertex_faces[x as usize] {
+            let t = self.faces[f as usize];
+            let i = t.iter().position(|&v| v == x).expect("face lists its vertex");
+            let (p, q) = (t[(i + 1) % 3], t[(i + 2) % 3]);
+            verts.push(p);
+            verts.push(q);
+            edges.push((p.min(q), p.max(q)));
+            out_of.push(p);
+            into.push(q);
+        }
+        out_of.sort_unstable();
+        into.sort_unstable();
+        let mut boundary = false;
+        for &p in &out_of {
+            if into.binary_search(&p).is_err() {
+                boundary = true;
+                edges.push((p, OMEGA));
+            }
+        }
+        for &q in &into {
+            if out_of.binary_search(&q).is_err() {
+                boundary = true;
+                edges.push((q, OMEGA));
+            }
+        }
+        if boundary {
+            verts.push(OMEGA);
+        }
+        verts.sort_unstable();
+        verts.dedup();
+        edges.sort_unstable();
+        edges.dedup();
+        (verts, edges)
+    }
+
+    fn link_condition(&self, u: u32, v: u32) -> bool {
+        let mut edge_link: Vec<u32> = Vec::with_capacity(3);
+        let mut uses = 0;
+        for &f in &self.vertex_faces[u as usize] {
+            let t = self.faces[f as usize];
+            if t.contains(&v) {
+                uses += 1;
+                edge_link.extend(t.iter().copied().filter(|&w| w != u && w != v));
+            }
+        }
+        if uses == 0 || uses > 2 {
+            return false;
+        }
+        if uses == 1 {
+            edge_link.push(OMEGA);
+        }
+        edge_link.sort_unstable();
+        let (vu, eu) = self.link(u);
+        let (vv, ev) = self.link(v);
+        let common: Vec<u32> = vu
+            .iter()
+            .copied()
+            .filter(|x| vv.binary_search(x).is_ok())
+            .collect();
+        if common != edge_link {
+            return false;
+        }
+        !eu.iter().any(|e| ev.binary_search(e).is_ok())
+    }
+
+    /// Rule 2: the surviving triangles around u and v neither fold over nor degenerate at the new
+    /// position. "Fold" is judged against the area-weighted mean normal of all triangles around u and v
+    /// before the merge (the raw slivers' own normals are too noisy to compare with).
+    fn keeps_shape(&self, u: u32, v: u32, new_position: DVec3) -> bool {
+        let mut mean_normal = DVec3::ZERO;
+        for &x in &[u, v] {
+            for &f in &self.vertex_faces[x as usize] {
+                let t = self.faces[f as usize].map(|w| self.position(w));
+                mean_normal += (t[1] - t[0]).cross(t[2] - t[0]);
+            }
+        }
+        for &x in &[u, v] {
+            for &f in &self.vertex_faces[x as usize] {
+                let t = self.faces[f as usize];
+                if t.contains(&u) && t.contains(&v) {
+                    continue;
+                }
+                let after = t.map(|w| if w == u || w == v { new_position } else { self.position(w) });
+                let n_after = (after[1] - after[0]).cross(after[2] - after[0]);
+                if n_after.dot(mean_normal) <= 0.0 || n_after.length_squared() <= self.min_area2 {
+                    return false;
+                }
+            }
+        }
+        true
+    }
+
+    /// Contracts v into u.
+    fn contract(&mut self, u: u32, v: u32) {
+        let (moved_sum, moved_weight) = (self.pos_sum[v as usize], self.weight[v as usize]);
+        self.pos_sum[u as usize] += moved_sum;
+        self.weight[u as usize] += moved_weight;
+        let v_faces = std::mem::take(&mut self.vertex_faces[v as usize]);
+        for f in v_faces {
+            let t = self.faces[f as usize];
+            if t.contains(&u) {
+                self.face_alive[f as usize] = false;
+                for w in t {
+                    if w != v {
+                        self.vertex_faces[w as usize].retain(|&g| g != f);
+                    }
+                }
+            } else {
+                for w in self.faces[f as usize].iter_mut() {
+                    if *w == v {
+                        *w = u;
+                    }
+                }
+                self.vertex_faces[u as usize].push(f);
+            }
+        }
+    }
+}
+
+/// Merges the raw vertices cluster by cluster (clusters in key order, vertices in index order, so the
+/// result is deterministic) under the manifold-preserving rule of the module documentation.
+/// `cell_area_mm2` scales the degeneracy threshold.
+pub(crate) fn cluster_vertices(
+    positions: &[DVec3],
+    cluster_keys: &[u64],
+    triangles: &[[u32; 3]],
+    cell_area_mm2: f64,
+) -> ClusteredSurface {
+    let n = positions.len();
+    let mut work = Work {
+        pos_sum: positions.to_vec(),
+        weight: vec![1.0; n],
+        faces: triangles.to_vec(),
+        face_alive: vec![true; triangles.len()],
+        vertex_faces: vec![Vec::new(); n],
+        // |cross|^2 = (2 * area)^2; refuse areas below 1e-6 of a cell face.
+        min_area2: (2e-6 * cell_area_mm2).powi(2),
+    };
+    for (f, t) in triangles.iter().enumerate() {
+        for &v in t {
+            work.vertex_faces[v as usize].push(f as u32);
+        }
+    }
+    let mut order: Vec<u32> = (0..n as u32).collect();
+    order.sort_by_key(|&v| (cluster_keys[v as usize], v));
+    let mut refused = 0;
+    for group in order.chunk_by(|&a, &b| cluster_keys[a as usize] == cluster_keys[b as usize]) {
+        if group.len() < 2 {
+            continue;
+        }
+        let mut members: Vec<u32> = group.to_vec();
+        let mut blocked: Vec<(u32, u32)> = Vec::new();
+        loop {
+            let mut merged = None;
+            'search: for i in 0..members.len() {
+                for j in i + 1..members.len() {
+                    let (u, v) = (members[i], members[j]);
+                    if !work.adjacent(u, v) {
+                        continue;
+                    }
+                    let new_position = (work.pos_sum[u as usize] + work.pos_sum[v as usize])
+                        / (work.weight[u as usize] + work.weight[v as usize]);
+                    if work.link_condition(u, v) && work.keeps_shape(u, v, new_position) {
+                        work.contract(u, v);
+                        merged = Some(j);
+                        break 'search;
+                    } else if !blocked.contains(&(u, v)) {
+                        blocked.push((u, v));
+                    }
+                }
+            }
+            match merged {
+                Some(j) => {
+                    members.remove(j);
+                }
+                None => break,
+            }
+        }
+        // A pair refused at some point but later merged through another contraction is not a refusal.
+        refused += blocked
+            .iter()
+            .filter(|(u, v)| members.contains(u) && members.contains(v) && work.adjacent(*u, *v))
+            .count();
+    }
+    // Compact: surviving triangles in their original order, vertices in raw index order.
+    let mut new_index = vec![u32::MAX; n];
+    let mut used = vec![false; n];
+    for (f, t) in work.faces.iter().enumerate() {
+        if work.face_alive[f] {
+            for &v in t {
+                used[v as usize] = true;
+            }
+        }
+    }
+    let mut out = ClusteredSurface {
+        refused_merges: refused,
+        ..Default::default()
+    };
+    for v in 0..n {
+        if used[v] {
+            new_index[v] = out.positions.len() as u32;
+            out.positions.push(work.position(v as u32));
+        }
+    }
+    out.triangles = work
+        .faces
+        .iter()
+        .zip(&work.face_alive)
+        .filter(|(_, alive)| **alive)
+        .map(|(t, _)| t.map(|v| new_index[v as usize]))
+        .collect();
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::Mesh;
+
+    fn topo(c: &ClusteredSurface) -> crate::mesh::MeshTopology {
+        Mesh {
+            vertices: c.positions.clone(),
+            normals: vec![],
+            triangles: c.triangles.clone(),
+        }
+        .topology()
+    }
+
+    /// An octahedron: contracting any edge would leave a tetrahedron-like shape; one edge is fine, but
+    /// the link condition must refuse collapsing the result into a doubled triangle.
+    #[test]
+    fn refuses_to_collapse_a_tetrahedron() {
+        let positions = vec![DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::Z];
+        let triangles = vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]];
+        // All four vertices in one cluster: any contraction of a tetrahedron violates the link condition.
+        let c = cluster_vertices(&positions, &[0; 4], &triangles, 1.0);
+        assert_eq!(c.triangles.len(), 4);
+        assert!(c.refused_merges > 0);
+        let t = topo(&c);
+        assert!(t.is_closed_manifold() && t.euler_characteristic == 2, "{t:?}");
+    }
+
+    /// Two sheets through one cluster cell, joined by a strip elsewhere: merging across would pinch.
+    #[test]
+    fn keeps_two_sheets_in_one_cell_apart() {
+        // Two parallel square strips (z = 0 and z = 0.2) with vertices 0..4 and 4..8; vertices 1 and 5
+        // sit in the same cluster but no edge joins them, so they must survive as two vertices.
+        let mut positions = Vec::new();
+        for z in [0.0, 0.2] {
+            positions.extend([
+                DVec3::new(0.0, 0.0, z),
+                DVec3::new(1.0, 0.0, z),
+                DVec3::new(1.0, 1.0, z),
+                DVec3::new(0.0, 1.0, z),
+            ]);
+        }
+        let triangles = vec![[0, 1, 2], [0, 2, 3], [4, 6, 5], [4, 7, 6]];
+        let keys = [0, 9, 1, 2, 3, 9, 4, 5];
+        let c = cluster_vertices(&positions, &keys, &triangles, 1.0);
+        assert_eq!(c.positions.len(), 8);
+        assert_eq!(c.triangles.len(), 4);
+    }
+
+    /// A boundary fan: merging two boundary vertices across an interior edge would pinch the fan's
+    /// centre into two boundary arcs; the link condition (with ω) refuses it.
+    #[test]
+    fn refuses_boundary_pinch() {
+        // Strip of two triangles sharing edge 1-2: 0-1-2, 1-3-2. Vertices 0 and 3 are not adjacent; 1 and
+        // 2 are both boundary vertices joined by the interior edge 1-2.
+        let positions = vec![
+            DVec3::new(0.0, 0.0, 0.0),
+            DVec3::new(1.0, 0.0, 0.0),
+            DVec3::new(0.0, 1.0, 0.0),
+            DVec3::new(1.0, 1.0, 0.0),
+        ];
+        let triangles = vec![[0, 1, 2], [1, 3, 2]];
+        let c = cluster_vertices(&positions, &[0, 5, 5, 1], &triangles, 1.0);
+        assert_eq!(c.triangles.len(), 2, "contracting 1-2 would leave two triangles sharing only a vertex");
+        assert_eq!(c.refused_merges, 1);
+        assert!(topo(&c).is_oriented_manifold());
+    }
+
+    /// Contracting an interior edge of a fan removes its two triangles and keeps the manifold.
+    #[test]
+    fn contracts_interior_edge() {
+        // Hexagon fan around vertex 0, plus vertex 1 on the rim merged into 0.
+        let mut positions = vec![DVec3::ZERO];
+        for k in 0..6 {
+            let a = k as f64 * std::f64::consts::PI / 3.0;
+            positions.push(DVec3::new(a.cos(), a.sin(), 0.0));
+        }
+        let triangles: Vec<[u32; 3]> = (0..6).map(|k| [0, 1 + k, 1 + (k + 1) % 6]).collect();
+        let mut keys: Vec<u64> = (10..17).collect();
+        keys[1] = 10;
+        let c = cluster_vertices(&positions, &keys, &triangles, 1.0);
+        // Vertex 1 is a boundary vertex and 0 is interior: allowed, removes triangles 0-1-2 and 0-6-1.
+        assert_eq!(c.triangles.len(), 4);
+        assert_eq!(c.refused_merges, 0);
+        assert!(topo(&c).is_oriented_manifold());
+    }
+}
