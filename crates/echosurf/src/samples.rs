@@ -142,7 +142,7 @@ pub fn estimate_levels(intensities: &[f32]) -> Option<IntensityLevels> {
         .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), x| {
             (a.min(x), b.max(x))
         });
-    if !(hi > lo) {
+    if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     let scale = (BINS - 1) as f64 / (hi - lo) as f64;

@@ -37,7 +37,7 @@ pub struct SegmentArgs {
     #[arg(long)]
     pub edgels: Option<usize>,
     /// M as a fraction of the number of columns.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.75)]
     pub edgel_fraction: f64,
     /// Prior inside the carried band (C1).
     #[arg(long, default_value_t = 1.0)]

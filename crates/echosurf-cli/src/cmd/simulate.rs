@@ -1,8 +1,180 @@
-//! `echosurf simulate`.
+//! `echosurf simulate`: tracked B-mode sweeps of a phantom with ground truth.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use echosurf::simulate::{PhantomKind, SimulationOptions, simulate, write_preview, write_simulation};
 
 #[derive(Debug, clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// sphere | ellipsoid | torus | duck | hand | PATH to a closed STL/PLY/OBJ mesh (mm).
+    #[arg(long, default_value = "duck")]
+    phantom: String,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// Base name of the sequence (NAME.mha) and calibration (NAME_config.xml).
+    #[arg(long, default_value = "sim")]
+    name: String,
+    /// Random seed: same arguments and seed give identical files.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Frames per sweep.
+    #[arg(long)]
+    frames_per_sweep: Option<usize>,
+    /// Number of sweeps (default: enough to cover the object: top passes plus two side sweeps).
+    #[arg(long)]
+    sweeps: Option<usize>,
+    /// Image width in pixels.
+    #[arg(long)]
+    width: Option<usize>,
+    /// Image height (depth) in pixels.
+    #[arg(long)]
+    height: Option<usize>,
+    /// Pixel size in mm (square pixels).
+    #[arg(long)]
+    pixel_size: Option<f64>,
+    /// Probe centre frequency in MHz (attenuation scales with it).
+    #[arg(long)]
+    frequency: Option<f64>,
+    /// Axial / lateral PSF full width at half maximum (mm).
+    #[arg(long)]
+    axial_fwhm: Option<f64>,
+    #[arg(long)]
+    lateral_fwhm: Option<f64>,
+    /// Electronic noise floor (dB re full scale).
+    #[arg(long)]
+    noise_db: Option<f64>,
+    /// Tracker noise: standard deviation per axis (mm, degrees).
+    #[arg(long)]
+    tracker_noise_mm: Option<f64>,
+    #[arg(long)]
+    tracker_noise_deg: Option<f64>,
+    /// Calibration error of the written calibration (mm, degrees).
+    #[arg(long)]
+    calibration_error_mm: Option<f64>,
+    #[arg(long)]
+    calibration_error_deg: Option<f64>,
+    /// Hand tremor amplitude (mm).
+    #[arg(long)]
+    tremor_mm: Option<f64>,
+    /// Untracked object motion amplitude (mm); 0 = still.
+    #[arg(long)]
+    object_motion_mm: Option<f64>,
+    /// A perfect system: no tracker noise, no calibration error, no object motion.
+    #[arg(long)]
+    no_errors: bool,
+    /// Lattice spacing (mm) of the true surfaces.
+    #[arg(long)]
+    truth_resolution: Option<f64>,
+    /// Write the sequence without zlib compression.
+    #[arg(long)]
+    uncompressed: bool,
+    /// Also write a PNG montage of 12 frames.
+    #[arg(long)]
+    preview: Option<PathBuf>,
+    /// Worker threads (default: all cores). The output does not depend on it.
+    #[arg(long)]
+    threads: Option<usize>,
+}
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("`echosurf simulate` is not implemented yet")
+fn options_from(args: &Args) -> SimulationOptions {
+    let mut o = SimulationOptions {
+        phantom: PhantomKind::parse(&args.phantom),
+        seed: args.seed,
+        ..Default::default()
+    };
+    if let Some(v) = args.frames_per_sweep {
+        o.frames_per_sweep = v;
+    }
+    o.sweeps = args.sweeps;
+    if let Some(v) = args.width {
+        o.width_px = v;
+    }
+    if let Some(v) = args.height {
+        o.height_px = v;
+    }
+    if let Some(v) = args.pixel_size {
+        o.pixel_size_mm = v;
+    }
+    if let Some(v) = args.frequency {
+        // Resolution scales with wavelength unless given explicitly.
+        let scale = o.acoustics.frequency_mhz / v;
+        o.acoustics.axial_fwhm_mm *= scale;
+        o.acoustics.lateral_fwhm_mm *= scale;
+        o.acoustics.frequency_mhz = v;
+    }
+    if let Some(v) = args.axial_fwhm {
+        o.acoustics.axial_fwhm_mm = v;
+    }
+    if let Some(v) = args.lateral_fwhm {
+        o.acoustics.lateral_fwhm_mm = v;
+    }
+    if let Some(v) = args.noise_db {
+        o.acoustics.noise_db = v;
+    }
+    if let Some(v) = args.tracker_noise_mm {
+        o.errors.tracker_noise_mm = v;
+    }
+    if let Some(v) = args.tracker_noise_deg {
+        o.errors.tracker_noise_deg = v;
+    }
+    if let Some(v) = args.calibration_error_mm {
+        o.errors.calibration_error_mm = v;
+    }
+    if let Some(v) = args.calibration_error_deg {
+        o.errors.calibration_error_deg = v;
+    }
+    if let Some(v) = args.tremor_mm {
+        o.motion.tremor_mm = v;
+    }
+    if let Some(v) = args.object_motion_mm {
+        o.motion.object_motion_mm = v;
+    }
+    if let Some(v) = args.truth_resolution {
+        o.truth_resolution_mm = v;
+    }
+    o.compress = !args.uncompressed;
+    if args.no_errors {
+        o = o.without_errors();
+    }
+    o
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let options = options_from(&args);
+    let work = || -> anyhow::Result<()> {
+        let progress = crate::progress::BarProgress::new();
+        let sim = simulate(&options, &progress)?;
+        let files = write_simulation(&args.out, &args.name, &sim, &options)?;
+        println!(
+            "simulated {} frames in {} sweeps of the {} phantom",
+            sim.sequence.frames.len(),
+            sim.sweeps.len(),
+            options.phantom.name()
+        );
+        println!(
+            "levels: background {:.1}, boundary {:.1}, suggested iso-level {:.1}",
+            sim.background_level, sim.boundary_level, sim.suggested_iso
+        );
+        println!("sequence:    {}", files.sequence.display());
+        println!("calibration: {}", files.calibration.display());
+        for t in &files.truth {
+            println!("truth:       {}", t.display());
+        }
+        println!("description: {}", files.description.display());
+        if let Some(path) = &args.preview {
+            write_preview(path, &sim, 12)?;
+            println!("preview:     {}", path.display());
+        }
+        Ok(())
+    };
+    match args.threads {
+        Some(n) => rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build()
+            .context("creating the thread pool")?
+            .install(work),
+        None => work(),
+    }
 }

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 
 /// Normalised 1D Gaussian taps for `sigma_px`, radius `ceil(3 sigma)`; a single unit tap for sigma <= 0.
 pub fn gaussian_taps(sigma_px: f64) -> Vec<f32> {
-    if !(sigma_px > 0.0) {
+    if sigma_px.is_nan() || sigma_px <= 0.0 {
         return vec![1.0];
     }
     let radius = (3.0 * sigma_px).ceil() as i64;
@@ -71,6 +71,17 @@ pub fn smooth(
     });
 }
 
+/// Which sign of the vertical derivative (down the column, i.e. with depth) makes an edgel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum EdgePolarity {
+    /// dI/dv > 0: dark above, bright below, i.e. entering an echo from the probe side.
+    Rising,
+    /// dI/dv < 0: leaving an echo (into its shadow).
+    Falling,
+    /// |dI/dv|.
+    Both,
+}
+
 /// One edgel: a local maximum along its column of the vertical gradient magnitude.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Edgel {
@@ -81,7 +92,7 @@ pub struct Edgel {
 }
 
 /// The `count` strongest column edgels of a smoothed image: pixels whose central-difference vertical
-/// gradient magnitude exceeds `min_strength` and is a maximum along the column (echoes travel down the
+/// gradient (of the chosen polarity) exceeds `min_strength` and is a maximum along the column (echoes travel down the
 /// columns, so a boundary crosses each column once; suppressing non-maxima turns one blurred edge into one
 /// edgel per column instead of several). Ties are broken by index, so the choice is deterministic.
 pub fn strongest_column_edgels(
@@ -90,6 +101,7 @@ pub fn strongest_column_edgels(
     height: usize,
     count: usize,
     min_strength: f32,
+    polarity: EdgePolarity,
     out: &mut Vec<Edgel>,
 ) {
     out.clear();
@@ -97,7 +109,12 @@ pub fn strongest_column_edgels(
         return;
     }
     let grad = |u: usize, v: usize| -> f32 {
-        0.5 * (smoothed[(v + 1) * width + u] - smoothed[(v - 1) * width + u]).abs()
+        let g = 0.5 * (smoothed[(v + 1) * width + u] - smoothed[(v - 1) * width + u]);
+        match polarity {
+            EdgePolarity::Rising => g,
+            EdgePolarity::Falling => -g,
+            EdgePolarity::Both => g.abs(),
+        }
     };
     let rows: Vec<Vec<Edgel>> = (2..height - 2)
         .into_par_iter()
@@ -294,13 +311,17 @@ mod tests {
         let mut s = Vec::new();
         smooth(&img, w, h, &gaussian_taps(1.5), &mut tmp, &mut s);
         let mut edgels = Vec::new();
-        strongest_column_edgels(&s, w, h, 100, 0.0, &mut edgels);
+        strongest_column_edgels(&s, w, h, 100, 0.0, EdgePolarity::Rising, &mut edgels);
         assert_eq!(edgels.len(), w);
         for e in &edgels {
             let v = e.index as usize / w;
             assert!(v == 9 || v == 10, "edgel at row {v}");
         }
-        strongest_column_edgels(&s, w, h, 5, 0.0, &mut edgels);
+        strongest_column_edgels(&s, w, h, 5, 0.0, EdgePolarity::Rising, &mut edgels);
         assert_eq!(edgels.len(), 5);
+        strongest_column_edgels(&s, w, h, 100, 0.0, EdgePolarity::Falling, &mut edgels);
+        assert!(edgels.is_empty());
+        strongest_column_edgels(&s, w, h, 100, 0.0, EdgePolarity::Both, &mut edgels);
+        assert_eq!(edgels.len(), w);
     }
 }

@@ -194,7 +194,7 @@ pub fn find_echo_structures(
         .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &x| {
             (a.min(x), b.max(x))
         });
-    if !(hi > lo) {
+    if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         return Vec::new();
     }
     let threshold = otsu_threshold(smoothed, lo, hi).max({

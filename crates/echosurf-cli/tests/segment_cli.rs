@@ -1,0 +1,146 @@
+//! `echosurf segment` and `echosurf sample` end to end on the real PLUS spine sweep.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// Real data beside the repository (CI, /work/main); from a helper worktree (/work/wt/NAME) it is one
+/// level further up.
+fn real(name: &str) -> PathBuf {
+    let beside = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/data/real/"
+    ));
+    let worktree = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../../shared/data/real/"
+    ));
+    if beside.exists() { beside } else { worktree }.join(name)
+}
+
+fn spine_args() -> Vec<String> {
+    vec![
+        real("SpinePhantomFreehand.igs.mha").display().to_string(),
+        "--config".into(),
+        real("PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
+            .display()
+            .to_string(),
+    ]
+}
+
+fn echosurf(args: &[String]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_echosurf"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("masks.mha");
+    let preview = dir.path().join("overlay.png");
+    let mut args = vec!["segment".to_string()];
+    args.extend(spine_args());
+    args.extend(["--auto-init", "--out"].map(String::from));
+    args.push(out.display().to_string());
+    args.push("--preview".into());
+    args.push(preview.display().to_string());
+    let result = echosurf(&args);
+    assert!(
+        result.status.success(),
+        "{}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+    let masks = echosurf::io::read_sequence(&out).unwrap();
+    assert_eq!(
+        (masks.width, masks.height, masks.frames.len()),
+        (820, 616, 21)
+    );
+    let echosurf::io::PixelData::U8(px) = &masks.pixels else {
+        panic!("masks must be MET_UCHAR")
+    };
+    assert!(px.iter().all(|&x| x == 0 || x == 255));
+    let kept = px.iter().filter(|&&x| x == 255).count() as f64 / px.len() as f64;
+    // Every frame has a band, and the band is a small part of the frame.
+    for f in 0..21 {
+        assert!(
+            px[f * 820 * 616..(f + 1) * 820 * 616].contains(&255),
+            "frame {f} empty"
+        );
+    }
+    assert!(kept > 0.01 && kept < 0.30, "kept fraction {kept}");
+    assert!(std::fs::metadata(&preview).unwrap().len() > 1000);
+}
+
+#[test]
+fn sample_writes_a_thinned_point_cloud_with_intensity() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("points.ply");
+    let mut args = vec!["sample".to_string()];
+    args.extend(spine_args());
+    args.extend(
+        [
+            "--auto-init",
+            "--max-samples",
+            "5000",
+            "--seed",
+            "3",
+            "--out",
+        ]
+        .map(String::from),
+    );
+    args.push(out.display().to_string());
+    let result = echosurf(&args);
+    assert!(
+        result.status.success(),
+        "{}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+    let cloud = echosurf::io::read_point_cloud(&out).unwrap();
+    assert_eq!(cloud.positions.len(), 5000);
+    let intensity = cloud.scalar("intensity").unwrap();
+    assert!(intensity.iter().all(|&x| (0.0..=255.0).contains(&x)));
+    // Inside the box of PLUS's own reconstruction of this sweep (origin -74.52 165.57 29.07 mm, 0.5 mm
+    // voxels, 147 x 106 x 105), with a voxel of slack.
+    let lo = [-74.5217 - 0.5, 165.573 - 0.5, 29.072 - 0.5];
+    let hi = [-74.5217 + 73.5, 165.573 + 53.5, 29.072 + 53.0];
+    for p in &cloud.positions {
+        for k in 0..3 {
+            assert!(
+                p[k] >= lo[k] && p[k] <= hi[k],
+                "{p:?} outside the reconstruction box"
+            );
+        }
+    }
+    assert!(String::from_utf8_lossy(&result.stdout).contains("suggested iso"));
+}
+
+#[test]
+fn bad_initial_bands_name_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let small = dir.path().join("small.png");
+    let mut bytes = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut bytes, 4, 4);
+        enc.set_color(png::ColorType::Grayscale);
+        let mut w = enc.write_header().unwrap();
+        w.write_image_data(&[255; 16]).unwrap();
+    }
+    std::fs::write(&small, bytes).unwrap();
+    let empty = dir.path().join("empty.json");
+    std::fs::write(&empty, r#"{"polygon": []}"#).unwrap();
+    for (init, expect) in [(&small, "4x4"), (&empty, "0 vertices")] {
+        let mut args = vec!["segment".to_string()];
+        args.extend(spine_args());
+        args.push("--init".into());
+        args.push(init.display().to_string());
+        args.push("--out".into());
+        args.push(dir.path().join("m.mha").display().to_string());
+        let result = echosurf(&args);
+        assert!(!result.status.success());
+        let err = String::from_utf8_lossy(&result.stderr);
+        let name = init.file_name().unwrap().to_string_lossy();
+        assert!(err.contains(name.as_ref()) && err.contains(expect), "{err}");
+    }
+    assert!(!dir.path().join("m.mha").exists());
+}

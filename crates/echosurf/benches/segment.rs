@@ -1,0 +1,44 @@
+//! Frames segmented per second at the PLUS scanner size, 820 x 616 (target >= 30 frames/s on 2 cores).
+
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use echosurf::progress::NoProgress;
+use echosurf::segment::synthetic::synthetic_sweep;
+use echosurf::segment::{InitialBand, SegmentOptions, segment_sequence};
+
+fn bench_segment(c: &mut Criterion) {
+    const FRAMES: usize = 20;
+    let sweep = synthetic_sweep(820, 616, FRAMES, 0.08, 2.0, 1);
+    let mut group = c.benchmark_group("segment");
+    group.sample_size(10);
+    group.throughput(Throughput::Elements(FRAMES as u64));
+    for (name, init) in [
+        (
+            "propagate_820x616",
+            InitialBand::Polygon(vec![
+                [0.0, 150.0],
+                [819.0, 150.0],
+                [819.0, 400.0],
+                [0.0, 400.0],
+            ]),
+        ),
+        ("auto_init_820x616", InitialBand::Auto),
+    ] {
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                segment_sequence(
+                    &sweep.sequence,
+                    &sweep.poses,
+                    None,
+                    &init,
+                    &SegmentOptions::default(),
+                    &NoProgress,
+                )
+                .unwrap()
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_segment);
+criterion_main!(benches);

@@ -1,1 +1,0 @@
-//! Phantom simulator: tracked B-mode sweeps of known shapes with ground truth.

@@ -1,0 +1,210 @@
+//! Files of a simulation: the PLUS sequence and device set, the true surfaces, a JSON description, and a
+//! preview montage.
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+use super::phantom::Phantom;
+use super::{Simulation, SimulationOptions};
+use crate::io::sequence::mat4_to_row_major;
+use crate::mesh::Mesh;
+use crate::progress::Progress;
+use crate::surface::{FnField, SurfaceDomain, SurfaceOptions, extract_surfaces};
+use crate::{Error, Result};
+
+/// Paths written by [`write_simulation`].
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SimulationFiles {
+    pub sequence: PathBuf,
+    pub calibration: PathBuf,
+    /// `truth.ply` (all true surfaces in one mesh) first, then one file per surface when there are several.
+    pub truth: Vec<PathBuf>,
+    pub description: PathBuf,
+}
+
+/// The true surfaces: the mesh phantom's own mesh, or the zero level of each analytic surface extracted on
+/// a full lattice (outward normals: the field handed to the surfacer is minus the signed distance, and
+/// the surfacer orients normals toward lower values).
+pub fn truth_meshes(
+    phantom: &dyn Phantom,
+    resolution_mm: f64,
+    progress: &dyn Progress,
+) -> Result<Vec<(String, Mesh)>> {
+    if let Some(meshes) = phantom.exact_meshes() {
+        return Ok(meshes);
+    }
+    let (lo, hi) = phantom.bounds();
+    let margin = DVec3::splat(2.0 * resolution_mm + 1.0);
+    let domain = SurfaceDomain {
+        bounds_min_mm: lo - margin,
+        bounds_max_mm: hi + margin,
+        seeds: Vec::new(),
+        trust_points: Vec::new(),
+    };
+    // No trust points: the whole lattice is evaluated, nothing is clipped.
+    let options = SurfaceOptions {
+        resolution_mm,
+        ..SurfaceOptions::default()
+    };
+    let surfaces = phantom.surfaces();
+    progress.start("truth", surfaces.len() as u64);
+    let mut meshes = Vec::with_capacity(surfaces.len());
+    for (k, (name, sdf)) in surfaces.into_iter().enumerate() {
+        let field = FnField(|p: DVec3| {
+            let (d, g) = sdf(p);
+            (-d, -g)
+        });
+        let mut extracted = extract_surfaces(&field, &[0.0], &domain, &options)?;
+        let mesh = extracted.pop().unwrap_or_default();
+        meshes.push((name, mesh));
+        progress.advance(k as u64 + 1);
+    }
+    progress.finish();
+    Ok(meshes)
+}
+
+/// All truth surfaces in one mesh.
+pub fn merged_truth(truth: &[(String, Mesh)]) -> Mesh {
+    let mut all = Mesh::default();
+    let with_normals = truth.iter().all(|(_, m)| m.normals.len() == m.vertices.len());
+    for (_, m) in truth {
+        let offset = all.vertices.len() as u32;
+        all.vertices.extend_from_slice(&m.vertices);
+        if with_normals {
+            all.normals.extend_from_slice(&m.normals);
+        }
+        all.triangles
+            .extend(m.triangles.iter().map(|t| t.map(|i| i + offset)));
+    }
+    all
+}
+
+/// Writes `NAME.mha`, `NAME_config.xml`, `truth.ply` (+ `truth_NAME.ply` per surface when there are
+/// several) and `phantom.json` into `dir` (created if missing).
+pub fn write_simulation(
+    dir: &Path,
+    name: &str,
+    sim: &Simulation,
+    options: &SimulationOptions,
+) -> Result<SimulationFiles> {
+    if name.is_empty() || name.contains(['/', '\\']) {
+        return Err(Error::InvalidInput(format!(
+            "simulation name {name:?} must be a plain file name"
+        )));
+    }
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let sequence = dir.join(format!("{name}.mha"));
+    crate::io::write_sequence(&sequence, &sim.sequence, options.compress)?;
+    let calibration = dir.join(format!("{name}_config.xml"));
+    crate::io::write_calibration(&calibration, &sim.calibration_written)?;
+    let mut truth = vec![dir.join("truth.ply")];
+    crate::io::write_mesh(&truth[0], &merged_truth(&sim.truth))?;
+    if sim.truth.len() > 1 {
+        for (surface, mesh) in &sim.truth {
+            let path = dir.join(format!("truth_{surface}.ply"));
+            crate::io::write_mesh(&path, mesh)?;
+            truth.push(path);
+        }
+    }
+    let description = dir.join("phantom.json");
+    let json = description_json(name, sim, options, &truth);
+    let text = serde_json::to_string_pretty(&json)
+        .map_err(|e| Error::InvalidInput(format!("phantom.json: {e}")))?;
+    crate::io::atomic::write_bytes_atomic(&description, (text + "\n").as_bytes())?;
+    Ok(SimulationFiles {
+        sequence,
+        calibration,
+        truth,
+        description,
+    })
+}
+
+fn description_json(
+    name: &str,
+    sim: &Simulation,
+    options: &SimulationOptions,
+    truth_files: &[PathBuf],
+) -> serde_json::Value {
+    let file_name = |p: &PathBuf| {
+        p.file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    serde_json::json!({
+        "generator": concat!("echosurf ", env!("CARGO_PKG_VERSION"), " simulate"),
+        "name": name,
+        "phantom": options.phantom.name(),
+        "seed": options.seed,
+        "frames": sim.sequence.frames.len(),
+        "sweeps": sim.sweeps.iter().map(|r| [r.start, r.end]).collect::<Vec<_>>(),
+        "sweep_plans": sim.sweep_specs,
+        "suggested_iso": sim.suggested_iso,
+        "background_level": sim.background_level,
+        "boundary_level": sim.boundary_level,
+        "world_frame": "Tracker (= phantom frame at t = 0), mm",
+        "phantom_bounds_mm": [sim.phantom_bounds.0.to_array(), sim.phantom_bounds.1.to_array()],
+        "image_to_probe_true": mat4_to_row_major(&sim.calibration_true.image_to_probe),
+        "image_to_probe_written": mat4_to_row_major(&sim.calibration_written.image_to_probe),
+        "truth_files": truth_files.iter().map(file_name).collect::<Vec<_>>(),
+        "truth_surfaces": sim.truth.iter().map(|(n, m)| serde_json::json!({
+            "name": n,
+            "vertices": m.vertices.len(),
+            "triangles": m.triangles.len(),
+            "area_mm2": m.area_mm2(),
+        })).collect::<Vec<_>>(),
+        "options": options,
+    })
+}
+
+/// Writes a montage of up to `count` frames spread evenly over the sequence (4 per row, 4 px gaps) as
+/// an 8-bit grey PNG.
+pub fn write_preview(path: &Path, sim: &Simulation, count: usize) -> Result<()> {
+    let seq = &sim.sequence;
+    let n = seq.frames.len();
+    let crate::io::PixelData::U8(pixels) = &seq.pixels else {
+        return Err(Error::InvalidInput("preview needs 8-bit frames".into()));
+    };
+    if n == 0 || count == 0 {
+        return Err(Error::InvalidInput("preview: no frames to show".into()));
+    }
+    let shown = count.min(n);
+    let picks: Vec<usize> = (0..shown)
+        .map(|k| {
+            if shown == 1 {
+                n / 2
+            } else {
+                k * (n - 1) / (shown - 1)
+            }
+        })
+        .collect();
+    let columns = shown.min(4);
+    let rows = shown.div_ceil(columns);
+    let gap = 4;
+    let (w, h) = (seq.width, seq.height);
+    let total_w = columns * w + (columns + 1) * gap;
+    let total_h = rows * h + (rows + 1) * gap;
+    let mut image = vec![40u8; total_w * total_h];
+    for (k, &frame) in picks.iter().enumerate() {
+        let (cx, cy) = (k % columns, k / columns);
+        let (x0, y0) = (gap + cx * (w + gap), gap + cy * (h + gap));
+        for v in 0..h {
+            let src = &pixels[frame * w * h + v * w..frame * w * h + (v + 1) * w];
+            let dst = (y0 + v) * total_w + x0;
+            image[dst..dst + w].copy_from_slice(src);
+        }
+    }
+    let mut png_bytes = Vec::new();
+    {
+        let mut encoder = png::Encoder::new(&mut png_bytes, total_w as u32, total_h as u32);
+        encoder.set_color(png::ColorType::Grayscale);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder
+            .write_header()
+            .map_err(|e| Error::InvalidInput(format!("{}: PNG encoding: {e}", path.display())))?;
+        writer
+            .write_image_data(&image)
+            .map_err(|e| Error::InvalidInput(format!("{}: PNG encoding: {e}", path.display())))?;
+    }
+    crate::io::atomic::write_bytes_atomic(path, &png_bytes)
+}
