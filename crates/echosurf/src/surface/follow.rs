@@ -166,11 +166,9 @@ impl Follower<'_> {
                 for axis in 0..3 {
                     for side in 0..2 {
                         // Corners of the face at `axis` = side.
-                        let face: Vec<f64> = (0..8)
-                            .filter(|c| (c >> axis) & 1 == side)
-                            .map(|c| v[c])
-                            .collect();
-                        let high = face.iter().filter(|&&x| x > level).count();
+                        let high = (0..8)
+                            .filter(|c| (c >> axis) & 1 == side && v[*c] > level)
+                            .count();
                         if high == 0 || high == 4 {
                             continue;
                         }
