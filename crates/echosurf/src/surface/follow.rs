@@ -194,6 +194,7 @@ impl Follower<'_> {
 
 /// Surface-following from seed points. A seed whose own cell is not crossed looks for crossed cells at
 /// growing Chebyshev distance up to `search_radius_cells`, unless the surface was already found there.
+/// Seeds are first thinned to one per block of `search_radius_cells + 1` cells along each axis.
 pub(crate) fn follow_from_seeds(
     field: &dyn ScalarField,
     lattice: &Lattice,
@@ -210,6 +211,14 @@ pub(crate) fn follow_from_seeds(
         .collect();
     seed_cells.sort_unstable();
     seed_cells.dedup();
+    // Thin dense seeds (every sample of a sweep) to one per block of (radius + 1)^3 cells: the search
+    // around the kept seed reaches every cell of its block, so the thinning loses no crossed cell of the
+    // block, and the cost follows the blocks, not the samples. Keeps the lowest cell of each block.
+    let block = search_radius_cells as i32 + 1;
+    let block_key = |k: u64| pack(unpack(k).map(|c| c / block));
+    seed_cells.sort_unstable_by_key(|&k| (block_key(k), k));
+    seed_cells.dedup_by_key(|k| block_key(*k));
+    seed_cells.sort_unstable();
     let mut follower = Follower {
         field,
         lattice,
@@ -225,6 +234,20 @@ pub(crate) fn follow_from_seeds(
         for r in 0..=radius {
             // Seeds with the surface already found within distance r need no search.
             pending.retain(|&s| !near_visited(s, r, &visited));
+            if r == 1 && !pending.is_empty() {
+                // Before searching, drop seeds whose first-order distance to the level |s - k| / |grad s|
+                // is more than twice the search reach (twice: the estimate is only first-order).
+                let reach = 2.0 * (radius as f64 + 1.0) * 3f64.sqrt() * lattice.spacing_mm;
+                let centres: Vec<DVec3> = pending.iter().map(|&c| lattice.cell_centre(c)).collect();
+                let (values, gradients) =
+                    super::lattice::evaluate_gradients(field, &centres, follower.counter);
+                let mut k = 0;
+                pending.retain(|_| {
+                    let (v, g) = (values[k], gradients[k].length());
+                    k += 1;
+                    !(v.is_finite() && g.is_finite()) || (v - level).abs() <= reach * g
+                });
+            }
             let mut candidates: Vec<Ijk> = Vec::new();
             for &s in &pending {
                 for_each_ring_cell(s, r, |c| {

@@ -2,6 +2,7 @@
 
 use glam::DVec3;
 use proptest::prelude::*;
+use rand::SeedableRng;
 
 use super::*;
 use crate::mesh::MeshTopology;
@@ -225,6 +226,33 @@ fn surface_following_matches_the_full_grid_with_far_fewer_evaluations() {
     );
     assert!(stats.lattice_nodes_evaluated * 5 < full_stats.lattice_nodes_evaluated);
     assert_eq!(stats.seed_cells, 2);
+
+    // Dense seeds like a sweep's samples: 4000 points in a shell +-1.5 mm around the surface. Same
+    // mesh; the thinning keeps the cost near that of a few seeds.
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+    let shell_seeds: Vec<DVec3> = (0..4000)
+        .map(|_| {
+            use rand::Rng;
+            let dir = DVec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            )
+            .normalize();
+            CENTRE + dir * (radius + rng.random_range(-1.5..1.5))
+        })
+        .collect();
+    let dense = SurfaceDomain {
+        seeds: shell_seeds,
+        ..full_domain.clone()
+    };
+    let (dense_mesh, dense_stats) = extract(sphere(CENTRE, radius), &[0.0], &dense);
+    assert_eq!(dense_mesh[0], full[0]);
+    println!(
+        "4000 shell seeds: {} seed cells after thinning, {} lattice nodes evaluated",
+        dense_stats.seed_cells, dense_stats.lattice_nodes_evaluated
+    );
+    assert!(dense_stats.lattice_nodes_evaluated < 4 * stats.lattice_nodes_evaluated);
 
     // A seed far from any surface finds nothing: no mesh, and no error.
     let lost = SurfaceDomain {
