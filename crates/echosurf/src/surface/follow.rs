@@ -48,8 +48,9 @@ pub(crate) struct CrossedCells {
     pub seed_cells: usize,
 }
 
-/// Largest lattice the full-grid mode evaluates (nodes); beyond it the caller must pass seeds.
-pub(crate) const MAX_FULL_GRID_NODES: u128 = 1 << 28;
+/// Largest lattice the full-grid mode evaluates (nodes, 8 bytes each); beyond it the caller must pass
+/// seeds.
+pub(crate) const MAX_FULL_GRID_NODES: u128 = 1 << 26;
 
 #[inline]
 fn cell_corners(cell: Ijk) -> [Ijk; 8] {
@@ -81,16 +82,21 @@ pub(crate) fn full_grid(
         )));
     }
     let dims = lattice.cells.map(|c| c as usize + 1);
-    let mut points = Vec::with_capacity(node_count as usize);
-    for k in 0..dims[2] {
-        for j in 0..dims[1] {
-            for i in 0..dims[0] {
-                points.push(lattice.node_position([i as i32, j as i32, k as i32]));
+    // Evaluate in slabs of whole z-layers (about a million points each) so the point list stays small.
+    let layer = dims[0] * dims[1];
+    let layers_per_slab = (1 << 20) / layer.max(1) + 1;
+    let mut values = Vec::with_capacity(node_count as usize);
+    for k0 in (0..dims[2]).step_by(layers_per_slab) {
+        let mut points = Vec::with_capacity(layer * layers_per_slab.min(dims[2] - k0));
+        for k in k0..(k0 + layers_per_slab).min(dims[2]) {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    points.push(lattice.node_position([i as i32, j as i32, k as i32]));
+                }
             }
         }
+        values.extend(super::lattice::evaluate_values(field, &points, counter)?);
     }
-    let values = super::lattice::evaluate_values(field, &points, counter)?;
-    drop(points);
     let nodes = NodeValues::Dense { dims, values };
     let mut per_level = Vec::with_capacity(levels.len());
     for &level in levels {

@@ -359,6 +359,11 @@ fn bad_parameters_are_errors() {
         assert!(extract_surfaces(&f, &[0.0], &d, &bad).is_err(), "{bad:?}");
     }
     assert!(extract_surfaces(&f, &[0.0], &domain(1.0, -1.0), &ok).is_err());
+    // A full grid of 2000^3 nodes is refused before anything is allocated.
+    assert!(matches!(
+        extract_surfaces(&f, &[0.0], &domain(0.0, 1000.0), &ok),
+        Err(Error::ResourceLimit(_))
+    ));
     let nan_field = FnField(|_p: DVec3| (f64::NAN, DVec3::ZERO));
     assert!(extract_surfaces(&nan_field, &[0.0], &d, &ok).is_err());
     assert!(marching_cubes(&[0.0; 7], [2, 2, 2], DVec3::ZERO, DVec3::ONE, 0.0).is_err());
