@@ -1,9 +1,9 @@
 //! Vertex clustering ("regularisation") that keeps the mesh an oriented 2-manifold.
 //!
-//! Every raw vertex belongs to the clustering cell of the lattice node nearest to it along its edge (the
-//! cells are the lattice cubes shifted by half a spacing). Within a cell, vertices are merged by
-//! contracting mesh edges joining two of them, one edge at a time, in a fixed order. **The rule**: an edge
-//! `uv` is contracted only if
+//! Every raw vertex belongs to one clustering cell (see `rmt::cluster_key`: Voronoi cells of a
+//! face-centred cubic lattice slightly coarser than the sampling lattice). Within a cell, vertices are
+//! merged by contracting mesh edges joining two of them, one edge at a time, in a fixed order.
+//! **The rule**: an edge `uv` is contracted only if
 //!
 //! 1. it satisfies the *link condition* (Dey, Edelsbrunner et al. 1999):
 //!    `Lk(u) ∩ Lk(v) = Lk(uv)`, where links are taken after coning the boundary to a virtual vertex ω
