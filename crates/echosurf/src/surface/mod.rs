@@ -1,9 +1,9 @@
 //! Iso-surface extraction: regularised marching tetrahedra (surface-following) and marching cubes.
 //!
 //! The pipeline of [`extract_surfaces`] for each level: find the lattice cells the surface crosses
-//! ([`follow`]: from seeds, or a full-grid scan), clipped to the region of trust ([`trust`]); marching
-//! tetrahedra in them ([`rmt`]); merge vertices per clustering cell without breaking the manifold
-//! ([`clustering`], which documents the rule); move every vertex onto the surface with batched Newton
+//! (`follow`: from seeds, or a full-grid scan), clipped to the region of trust (`trust`); marching
+//! tetrahedra in them (`rmt`); merge vertices per clustering cell without breaking the manifold
+//! (`clustering`, which documents the rule); move every vertex onto the surface with batched Newton
 //! steps along the field gradient, and take normals from the gradient (toward lower values).
 
 mod clustering;
@@ -403,7 +403,7 @@ fn finish_normals(gradient_normals: &mut [DVec3], positions: &[DVec3], triangles
 
 /// Classic marching cubes on a regular grid: `values[x + dims[0] * (y + dims[1] * z)]`, node (i, j, k) at
 /// `origin_mm + (i, j, k) * spacing_mm`; normals point toward lower values (central differences).
-/// Watertight: closed wherever the surface closes inside the grid (see [`mc`] for the face rule).
+/// Watertight: closed wherever the surface closes inside the grid (see `mc` for the face rule).
 pub fn marching_cubes(
     values: &[f32],
     dims: [usize; 3],
