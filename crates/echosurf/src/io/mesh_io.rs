@@ -1,20 +1,849 @@
 //! Mesh files: PLY (binary little-endian with vertex normals), STL (binary), OBJ; chosen by extension.
+//!
+//! Readers accept what other tools write: PLY in any encoding (through the one parser in
+//! [`crate::io::ply`]), binary and ASCII STL (binary files whose header starts with `solid`, like the fCal
+//! CAD model, are recognised by their exact size), OBJ with `v`/`vn`/`f` and polygons. Polygons are
+//! fan-triangulated. STL is a triangle soup, so its corners are welded by exact coordinate equality to give
+//! the mesh a topology. Bad indices, non-finite coordinates and truncated data are format errors.
 
+use std::collections::HashMap;
+use std::io::Write;
 use std::path::Path;
 
-use crate::mesh::Mesh;
-use crate::{Error, Result};
+use glam::DVec3;
 
-pub fn read_mesh(path: &Path) -> Result<Mesh> {
-    let _ = path;
-    Err(Error::InvalidInput(
-        "mesh reading is not implemented yet".into(),
-    ))
+use crate::io::ply::PlyFile;
+use crate::mesh::Mesh;
+use crate::{Error, FormatProblem, Result};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum MeshFormat {
+    Ply,
+    Stl,
+    Obj,
 }
 
+fn format_of(path: &Path) -> Option<MeshFormat> {
+    let ext = path.extension()?.to_string_lossy().to_ascii_lowercase();
+    match ext.as_str() {
+        "ply" => Some(MeshFormat::Ply),
+        "stl" => Some(MeshFormat::Stl),
+        "obj" => Some(MeshFormat::Obj),
+        _ => None,
+    }
+}
+
+/// Reads a `.ply`, `.stl` or `.obj` mesh (by extension, case-insensitive).
+pub fn read_mesh(path: &Path) -> Result<Mesh> {
+    let format = format_of(path).ok_or_else(|| {
+        Error::format(
+            path,
+            FormatProblem::Unsupported,
+            "unknown mesh file extension (expected .ply, .stl or .obj)",
+        )
+    })?;
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    match format {
+        MeshFormat::Ply => parse_ply_mesh(path, &bytes),
+        MeshFormat::Stl => parse_stl(path, &bytes),
+        MeshFormat::Obj => parse_obj(path, &bytes),
+    }
+}
+
+/// Writes a mesh as `.ply` (binary little-endian, float vertices, vertex normals when the mesh has them),
+/// `.stl` (binary, facet normals from the geometry) or `.obj` (`v`, `vn`, `f`), atomically.
 pub fn write_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
-    let _ = (path, mesh);
-    Err(Error::InvalidInput(
-        "mesh writing is not implemented yet".into(),
-    ))
+    let format = format_of(path).ok_or_else(|| {
+        Error::InvalidInput(format!(
+            "{}: unknown mesh file extension (expected .ply, .stl or .obj)",
+            path.display()
+        ))
+    })?;
+    check_mesh(path, mesh)?;
+    match format {
+        MeshFormat::Ply => write_ply(path, mesh),
+        MeshFormat::Stl => write_stl(path, mesh),
+        MeshFormat::Obj => write_obj(path, mesh),
+    }
+}
+
+/// Refuses to write a mesh that could not be read back: indices out of range, non-finite values, a
+/// normal count that is neither zero nor one per vertex.
+fn check_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
+    let bad = |msg: String| Err(Error::InvalidInput(format!("{}: {msg}", path.display())));
+    if !mesh.normals.is_empty() && mesh.normals.len() != mesh.vertices.len() {
+        return bad(format!(
+            "mesh has {} normals for {} vertices",
+            mesh.normals.len(),
+            mesh.vertices.len()
+        ));
+    }
+    // PLY indices are written as `int`, STL counts triangles in a u32.
+    if i32::try_from(mesh.vertices.len()).is_err() || u32::try_from(mesh.triangles.len()).is_err() {
+        return bad("mesh too large for the mesh file formats".into());
+    }
+    if let Some(i) = mesh.vertices.iter().position(|v| !v.is_finite()) {
+        return bad(format!("vertex {i} is not finite"));
+    }
+    if let Some(i) = mesh.normals.iter().position(|v| !v.is_finite()) {
+        return bad(format!("normal {i} is not finite"));
+    }
+    let n = mesh.vertices.len();
+    if let Some(t) = mesh
+        .triangles
+        .iter()
+        .position(|t| t.iter().any(|&i| i as usize >= n))
+    {
+        return bad(format!(
+            "triangle {t} {:?} indexes past the {n} vertices",
+            mesh.triangles[t]
+        ));
+    }
+    Ok(())
+}
+
+fn has_normals(mesh: &Mesh) -> bool {
+    !mesh.normals.is_empty() && mesh.normals.len() == mesh.vertices.len()
+}
+
+fn write_ply(path: &Path, mesh: &Mesh) -> Result<()> {
+    let normals = has_normals(mesh);
+    let mut header =
+        String::from("ply\nformat binary_little_endian 1.0\ncomment echosurf mesh, mm\n");
+    header.push_str(&format!(
+        "element vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
+        mesh.vertices.len()
+    ));
+    if normals {
+        header.push_str("property float nx\nproperty float ny\nproperty float nz\n");
+    }
+    header.push_str(&format!(
+        "element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        mesh.triangles.len()
+    ));
+    crate::io::atomic::write_atomic(path, |w| {
+        w.write_all(header.as_bytes())?;
+        for (i, v) in mesh.vertices.iter().enumerate() {
+            write_f32s(w, &[v.x, v.y, v.z])?;
+            if normals {
+                let n = mesh.normals[i];
+                write_f32s(w, &[n.x, n.y, n.z])?;
+            }
+        }
+        for t in &mesh.triangles {
+            let mut row = [0u8; 13];
+            row[0] = 3;
+            for (k, &i) in t.iter().enumerate() {
+                row[1 + 4 * k..5 + 4 * k].copy_from_slice(&(i as i32).to_le_bytes());
+            }
+            w.write_all(&row)?;
+        }
+        Ok(())
+    })
+}
+
+fn write_f32s(w: &mut impl Write, values: &[f64]) -> std::io::Result<()> {
+    for &v in values {
+        w.write_all(&(v as f32).to_le_bytes())?;
+    }
+    Ok(())
+}
+
+/// Unit normal of a triangle by the right-hand rule, zero for a degenerate one.
+fn face_normal(mesh: &Mesh, t: [u32; 3]) -> DVec3 {
+    let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+    (b - a).cross(c - a).normalize_or_zero()
+}
+
+fn write_stl(path: &Path, mesh: &Mesh) -> Result<()> {
+    crate::io::atomic::write_atomic(path, |w| {
+        // The header must not start with "solid", or readers may take the file for ASCII STL.
+        let mut header = [b' '; 80];
+        let text = b"echosurf binary STL, mm";
+        header[..text.len()].copy_from_slice(text);
+        w.write_all(&header)?;
+        w.write_all(&(mesh.triangles.len() as u32).to_le_bytes())?;
+        for &t in &mesh.triangles {
+            let n = face_normal(mesh, t);
+            write_f32s(w, &[n.x, n.y, n.z])?;
+            for i in t {
+                let v = mesh.vertices[i as usize];
+                write_f32s(w, &[v.x, v.y, v.z])?;
+            }
+            w.write_all(&[0, 0])?;
+        }
+        Ok(())
+    })
+}
+
+fn write_obj(path: &Path, mesh: &Mesh) -> Result<()> {
+    let normals = has_normals(mesh);
+    crate::io::atomic::write_atomic(path, |w| {
+        writeln!(w, "# echosurf mesh, mm")?;
+        // `{}` prints the shortest decimal that reads back to the same f64, so OBJ round-trips exactly.
+        for v in &mesh.vertices {
+            writeln!(w, "v {} {} {}", v.x, v.y, v.z)?;
+        }
+        if normals {
+            for n in &mesh.normals {
+                writeln!(w, "vn {} {} {}", n.x, n.y, n.z)?;
+            }
+        }
+        for t in &mesh.triangles {
+            let [a, b, c] = t.map(|i| i as u64 + 1);
+            if normals {
+                writeln!(w, "f {a}//{a} {b}//{b} {c}//{c}")?;
+            } else {
+                writeln!(w, "f {a} {b} {c}")?;
+            }
+        }
+        Ok(())
+    })
+}
+
+/// Appends the fan triangulation of a polygon, after checking every index.
+fn push_polygon(
+    path: &Path,
+    what: &str,
+    polygon: &[u32],
+    vertex_count: usize,
+    triangles: &mut Vec<[u32; 3]>,
+) -> Result<()> {
+    if polygon.len() < 3 {
+        return Err(Error::format(
+            path,
+            FormatProblem::BadValue,
+            format!(
+                "{what} has {} vertices (a face needs at least 3)",
+                polygon.len()
+            ),
+        ));
+    }
+    if let Some(&i) = polygon.iter().find(|&&i| i as usize >= vertex_count) {
+        return Err(Error::format(
+            path,
+            FormatProblem::BadValue,
+            format!("{what} refers to vertex {i} but there are only {vertex_count} vertices"),
+        ));
+    }
+    for k in 1..polygon.len() - 1 {
+        triangles.push([polygon[0], polygon[k], polygon[k + 1]]);
+    }
+    Ok(())
+}
+
+fn parse_ply_mesh(path: &Path, bytes: &[u8]) -> Result<Mesh> {
+    let ply = PlyFile::parse(path, bytes)?;
+    let vertex = ply.element("vertex").ok_or_else(|| {
+        Error::format(
+            path,
+            FormatProblem::MissingField,
+            "PLY file has no `vertex` element",
+        )
+    })?;
+    let vertices = vertex.positions(path)?;
+    if u32::try_from(vertices.len()).is_err() {
+        return Err(Error::format(
+            path,
+            FormatProblem::Unsupported,
+            "more than 2^32 vertices",
+        ));
+    }
+    let normals = match (
+        vertex.scalar("nx"),
+        vertex.scalar("ny"),
+        vertex.scalar("nz"),
+    ) {
+        (Some(x), Some(y), Some(z)) => {
+            unit_normals((0..vertices.len()).map(|i| DVec3::new(x[i], y[i], z[i])))
+        }
+        _ => Vec::new(),
+    };
+    let face = ply.element("face").ok_or_else(|| {
+        Error::format(
+            path,
+            FormatProblem::MissingField,
+            "PLY file has no `face` element (a point cloud, not a mesh?)",
+        )
+    })?;
+    let (offsets, values) = face
+        .list("vertex_indices")
+        .or_else(|| face.list("vertex_index"))
+        .ok_or_else(|| {
+            Error::format(
+                path,
+                FormatProblem::MissingField,
+                "PLY `face` element has no `vertex_indices` list",
+            )
+        })?;
+    let mut triangles = Vec::with_capacity(face.count);
+    let mut polygon = Vec::new();
+    for f in 0..face.count {
+        polygon.clear();
+        for &v in &values[offsets[f]..offsets[f + 1]] {
+            if !(0.0..=u32::MAX as f64).contains(&v) || v.fract() != 0.0 {
+                return Err(Error::format(
+                    path,
+                    FormatProblem::BadValue,
+                    format!("PLY face {f} has vertex index {v}"),
+                ));
+            }
+            polygon.push(v as u32);
+        }
+        push_polygon(
+            path,
+            &format!("PLY face {f}"),
+            &polygon,
+            vertices.len(),
+            &mut triangles,
+        )?;
+    }
+    Ok(Mesh {
+        vertices,
+        normals,
+        triangles,
+    })
+}
+
+/// Normalised normals, or none at all if any is zero or not finite (a mesh has all or none).
+fn unit_normals(normals: impl Iterator<Item = DVec3>) -> Vec<DVec3> {
+    let mut out = Vec::new();
+    for n in normals {
+        match n.try_normalize() {
+            Some(u) => out.push(u),
+            None => return Vec::new(),
+        }
+    }
+    out
+}
+
+/// Welds triangle-soup corners that are bit-identical (after folding -0 into +0).
+#[derive(Default)]
+struct Welder {
+    index: HashMap<[u64; 3], u32>,
+    vertices: Vec<DVec3>,
+}
+
+impl Welder {
+    fn add(&mut self, p: DVec3) -> u32 {
+        let key = [p.x + 0.0, p.y + 0.0, p.z + 0.0].map(f64::to_bits);
+        *self.index.entry(key).or_insert_with(|| {
+            self.vertices.push(p + DVec3::ZERO);
+            (self.vertices.len() - 1) as u32
+        })
+    }
+}
+
+const STL_HEADER: usize = 84;
+const STL_FACET: usize = 50;
+
+fn parse_stl(path: &Path, bytes: &[u8]) -> Result<Mesh> {
+    if bytes.len() >= STL_HEADER {
+        let count = u32::from_le_bytes(bytes[80..84].try_into().expect("4 bytes")) as usize;
+        let expected = STL_HEADER as u64 + STL_FACET as u64 * count as u64;
+        if expected == bytes.len() as u64 {
+            return parse_binary_stl(path, bytes, count);
+        }
+        if !looks_like_ascii_stl(bytes) {
+            let problem = if (bytes.len() as u64) < expected {
+                FormatProblem::Truncated
+            } else {
+                FormatProblem::SizeMismatch
+            };
+            return Err(Error::format(
+                path,
+                problem,
+                format!(
+                    "binary STL header promises {count} triangles ({expected} bytes) but the file has {} bytes",
+                    bytes.len()
+                ),
+            ));
+        }
+    } else if !looks_like_ascii_stl(bytes) {
+        return Err(Error::format(
+            path,
+            FormatProblem::Truncated,
+            format!("{} bytes is too short for an STL file", bytes.len()),
+        ));
+    }
+    parse_ascii_stl(path, bytes)
+}
+
+fn looks_like_ascii_stl(bytes: &[u8]) -> bool {
+    bytes.trim_ascii_start().starts_with(b"solid") && bytes.iter().take(4096).all(|&b| b.is_ascii())
+}
+
+fn parse_binary_stl(path: &Path, bytes: &[u8], count: usize) -> Result<Mesh> {
+    let mut welder = Welder::default();
+    let mut triangles = Vec::with_capacity(count);
+    for (f, facet) in bytes[STL_HEADER..].chunks_exact(STL_FACET).enumerate() {
+        let mut corner = [0u32; 3];
+        for (k, c) in corner.iter_mut().enumerate() {
+            let at = 12 + 12 * k;
+            let xyz: [f64; 3] = std::array::from_fn(|a| {
+                f32::from_le_bytes(
+                    facet[at + 4 * a..at + 4 * a + 4]
+                        .try_into()
+                        .expect("4 bytes"),
+                ) as f64
+            });
+            let p = DVec3::from(xyz);
+            if !p.is_finite() {
+                return Err(Error::format(
+                    path,
+                    FormatProblem::BadValue,
+                    format!("STL triangle {f} has a non-finite corner ({p})"),
+                ));
+            }
+            *c = welder.add(p);
+        }
+        triangles.push(corner);
+    }
+    Ok(Mesh {
+        vertices: welder.vertices,
+        normals: Vec::new(),
+        triangles,
+    })
+}
+
+fn parse_ascii_stl(path: &Path, bytes: &[u8]) -> Result<Mesh> {
+    let text = std::str::from_utf8(bytes)
+        .map_err(|_| Error::format(path, FormatProblem::Corrupt, "ASCII STL is not valid text"))?;
+    let bad = |msg: String| Error::format(path, FormatProblem::BadValue, msg);
+    let lines = text.lines().enumerate();
+    let mut welder = Welder::default();
+    let mut triangles = Vec::new();
+    let mut corners: Vec<u32> = Vec::with_capacity(3);
+    let mut in_solid = false;
+    let mut in_loop = false;
+    for (line_no, line) in lines {
+        let mut tokens = line.split_whitespace();
+        let Some(keyword) = tokens.next() else {
+            continue;
+        };
+        let at = |msg: &str| bad(format!("ASCII STL line {}: {msg}", line_no + 1));
+        match keyword {
+            "solid" if !in_solid => in_solid = true,
+            "endsolid" if in_solid && !in_loop => in_solid = false,
+            "facet" if in_solid && !in_loop => {}
+            "outer" if in_solid && !in_loop => {
+                in_loop = true;
+                corners.clear();
+            }
+            "vertex" if in_loop => {
+                let xyz: Vec<f64> = tokens
+                    .map(|t| t.parse::<f64>())
+                    .collect::<std::result::Result<_, _>>()
+                    .map_err(|_| at("vertex coordinate is not a number"))?;
+                let [x, y, z] = xyz[..] else {
+                    return Err(at("vertex needs three coordinates"));
+                };
+                let p = DVec3::new(x, y, z);
+                if !p.is_finite() {
+                    return Err(at("vertex coordinate is not finite"));
+                }
+                if corners.len() == 3 {
+                    return Err(at("facet has more than three vertices"));
+                }
+                corners.push(welder.add(p));
+            }
+            "endloop" if in_loop => {
+                let [a, b, c] = corners[..] else {
+                    return Err(at("facet does not have three vertices"));
+                };
+                triangles.push([a, b, c]);
+                in_loop = false;
+            }
+            "endfacet" if in_solid && !in_loop => {}
+            _ => return Err(at(&format!("unexpected {keyword:?}"))),
+        }
+    }
+    if in_solid || in_loop {
+        return Err(Error::format(
+            path,
+            FormatProblem::Truncated,
+            "ASCII STL ends inside a solid (no `endsolid`)",
+        ));
+    }
+    Ok(Mesh {
+        vertices: welder.vertices,
+        normals: Vec::new(),
+        triangles,
+    })
+}
+
+fn parse_obj(path: &Path, bytes: &[u8]) -> Result<Mesh> {
+    let text = std::str::from_utf8(bytes)
+        .map_err(|_| Error::format(path, FormatProblem::Corrupt, "OBJ file is not valid text"))?;
+    let mut vertices = Vec::new();
+    let mut file_normals = Vec::new();
+    // (OBJ vertex index, OBJ normal index) pairs seen on face corners.
+    let mut corner_normals: Vec<(u32, u32)> = Vec::new();
+    let mut triangles = Vec::new();
+    let mut polygon = Vec::new();
+    for (line_no, line) in text.lines().enumerate() {
+        let at = |problem, msg: &str| {
+            Error::format(path, problem, format!("OBJ line {}: {msg}", line_no + 1))
+        };
+        let mut tokens = line.split_whitespace();
+        match tokens.next() {
+            Some(kind @ ("v" | "vn")) => {
+                let mut xyz = [0.0; 3];
+                for c in &mut xyz {
+                    *c = tokens
+                        .next()
+                        .and_then(|t| t.parse::<f64>().ok())
+                        .ok_or_else(|| at(FormatProblem::BadValue, "needs three numbers"))?;
+                }
+                let p = DVec3::from(xyz);
+                if !p.is_finite() {
+                    return Err(at(FormatProblem::BadValue, "coordinate is not finite"));
+                }
+                if kind == "v" {
+                    vertices.push(p);
+                } else {
+                    file_normals.push(p);
+                }
+            }
+            Some("f") => {
+                polygon.clear();
+                for corner in tokens {
+                    let mut parts = corner.split('/');
+                    let v = resolve_obj_index(parts.next(), vertices.len()).ok_or_else(|| {
+                        at(
+                            FormatProblem::BadValue,
+                            &format!("bad vertex index in {corner:?}"),
+                        )
+                    })?;
+                    let _texture = parts.next();
+                    if let Some(n) = parts.next().filter(|s| !s.is_empty()) {
+                        let n =
+                            resolve_obj_index(Some(n), file_normals.len()).ok_or_else(|| {
+                                at(
+                                    FormatProblem::BadValue,
+                                    &format!("bad normal index in {corner:?}"),
+                                )
+                            })?;
+                        corner_normals.push((v, n));
+                    }
+                    polygon.push(v);
+                }
+                push_polygon(
+                    path,
+                    &format!("OBJ line {}", line_no + 1),
+                    &polygon,
+                    vertices.len(),
+                    &mut triangles,
+                )?;
+            }
+            _ => {} // comments, vt, groups, materials, smoothing, lines, points
+        }
+    }
+    if u32::try_from(vertices.len()).is_err() {
+        return Err(Error::format(
+            path,
+            FormatProblem::Unsupported,
+            "more than 2^32 vertices",
+        ));
+    }
+    let normals = per_vertex_normals(vertices.len(), &file_normals, &corner_normals);
+    Ok(Mesh {
+        vertices,
+        normals,
+        triangles,
+    })
+}
+
+/// OBJ indices are 1-based, negative ones count back from the latest element. `None` if out of range.
+fn resolve_obj_index(token: Option<&str>, count: usize) -> Option<u32> {
+    let i: i64 = token?.parse().ok()?;
+    let zero_based = match i {
+        1.. => i - 1,
+        ..=-1 => count as i64 + i,
+        0 => return None,
+    };
+    (0..count as i64)
+        .contains(&zero_based)
+        .then(|| u32::try_from(zero_based).ok())
+        .flatten()
+}
+
+/// OBJ normals belong to face corners; a [`Mesh`] has one per vertex. Keep them only when every vertex
+/// that has one is given the same normal by all its corners and every vertex has one.
+fn per_vertex_normals(
+    vertex_count: usize,
+    file_normals: &[DVec3],
+    corners: &[(u32, u32)],
+) -> Vec<DVec3> {
+    if corners.is_empty() {
+        return Vec::new();
+    }
+    let mut assigned: Vec<Option<DVec3>> = vec![None; vertex_count];
+    for &(v, n) in corners {
+        let normal = file_normals[n as usize];
+        match assigned[v as usize] {
+            None => assigned[v as usize] = Some(normal),
+            Some(existing) if existing == normal => {}
+            Some(_) => return Vec::new(),
+        }
+    }
+    let all: Option<Vec<DVec3>> = assigned.into_iter().collect();
+    all.map(|ns| unit_normals(ns.into_iter()))
+        .unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An octahedron with outward normals: closed, 6 vertices, 8 triangles.
+    fn octahedron() -> Mesh {
+        let vertices = vec![
+            DVec3::X * 2.5,
+            -DVec3::X,
+            DVec3::Y * 1.25,
+            -DVec3::Y,
+            DVec3::Z * 0.1,
+            -DVec3::Z,
+        ];
+        let triangles = vec![
+            [0, 2, 4],
+            [2, 1, 4],
+            [1, 3, 4],
+            [3, 0, 4],
+            [2, 0, 5],
+            [1, 2, 5],
+            [3, 1, 5],
+            [0, 3, 5],
+        ];
+        let normals = vertices.iter().map(|v: &DVec3| v.normalize()).collect();
+        Mesh {
+            vertices,
+            normals,
+            triangles,
+        }
+    }
+
+    fn to_f32(m: &Mesh) -> Mesh {
+        let r = |v: &DVec3| v.as_vec3().as_dvec3();
+        Mesh {
+            vertices: m.vertices.iter().map(r).collect(),
+            normals: m.normals.iter().map(|n| r(n).normalize()).collect(),
+            triangles: m.triangles.clone(),
+        }
+    }
+
+    #[test]
+    fn every_format_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        let mesh = octahedron();
+        let ply = dir.path().join("m.PLY");
+        write_mesh(&ply, &mesh).unwrap();
+        assert_eq!(read_mesh(&ply).unwrap(), to_f32(&mesh));
+
+        let obj = dir.path().join("m.obj");
+        write_mesh(&obj, &mesh).unwrap();
+        assert_eq!(
+            read_mesh(&obj).unwrap(),
+            mesh,
+            "OBJ keeps full f64 precision"
+        );
+
+        let stl = dir.path().join("m.stl");
+        write_mesh(&stl, &mesh).unwrap();
+        let back = read_mesh(&stl).unwrap();
+        let expected = Mesh {
+            normals: vec![],
+            ..to_f32(&mesh)
+        };
+        // Welding renumbers vertices in first-use order: compare triangles by position.
+        assert_eq!(back.triangles.len(), 8);
+        assert_eq!(back.vertices.len(), 6);
+        for (t, u) in back.triangles.iter().zip(&expected.triangles) {
+            assert_eq!(
+                t.map(|i| back.vertices[i as usize]),
+                u.map(|i| expected.vertices[i as usize])
+            );
+        }
+        assert!(back.topology().is_closed_manifold());
+        // Facet normals written point outward.
+        let bytes = std::fs::read(&stl).unwrap();
+        assert_eq!(bytes.len(), 84 + 50 * 8);
+        let n0: Vec<f32> = (0..3)
+            .map(|k| f32::from_le_bytes(bytes[84 + 4 * k..88 + 4 * k].try_into().unwrap()))
+            .collect();
+        let c = DVec3::new(2.5, 1.25, 0.1);
+        assert!(DVec3::new(n0[0] as f64, n0[1] as f64, n0[2] as f64).dot(c) > 0.0);
+
+        // Without normals as well, and an empty mesh.
+        let bare = Mesh {
+            normals: vec![],
+            ..mesh.clone()
+        };
+        for p in [&ply, &obj] {
+            write_mesh(p, &bare).unwrap();
+            assert!(read_mesh(p).unwrap().normals.is_empty());
+            write_mesh(p, &Mesh::default()).unwrap();
+            assert_eq!(read_mesh(p).unwrap(), Mesh::default());
+        }
+    }
+
+    #[test]
+    fn foreign_variants_are_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("q.ply");
+        // ASCII PLY with a quad, extra properties and the `vertex_index` spelling.
+        std::fs::write(
+            &path,
+            "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n\
+             property float z\nproperty uchar red\nelement face 1\nproperty uchar flags\n\
+             property list uint8 uint vertex_index\nend_header\n\
+             0 0 0 1\n1 0 0 1\n1 1 0 1\n0 1 0 1\n7 4 0 1 2 3\n",
+        )
+        .unwrap();
+        let m = read_mesh(&path).unwrap();
+        assert_eq!(m.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+
+        let path = dir.path().join("q.obj");
+        std::fs::write(
+            &path,
+            "# quad\nv 0 0 0\nv 1 0 0\nv 1 1 0 1.0\nv 0 1 0\nvt 0 0\nvn 0 0 2\ng x\n\
+             f 1/1/1 2/1/1 -2/1/1 -1/1/1\n",
+        )
+        .unwrap();
+        let m = read_mesh(&path).unwrap();
+        assert_eq!(m.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+        assert_eq!(m.normals, vec![DVec3::Z; 4]);
+
+        let path = dir.path().join("a.stl");
+        std::fs::write(
+            &path,
+            "solid t\n facet normal 0 0 1\n  outer loop\n   vertex 0 0 0\n   vertex 1 0 0\n\
+             vertex 0 1 0\n  endloop\n endfacet\n facet normal 0 0 1\n outer loop\n vertex 1 0 0\n\
+             vertex 1 1 0\n vertex 0 1 0\n endloop\n endfacet\nendsolid t\n",
+        )
+        .unwrap();
+        let m = read_mesh(&path).unwrap();
+        assert_eq!(m.vertices.len(), 4, "shared corners are welded");
+        assert_eq!(m.triangles, vec![[0, 1, 2], [1, 3, 2]]);
+        assert_eq!(m.topology().boundary_edges, 4);
+    }
+
+    #[test]
+    fn hostile_meshes_give_format_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let ply_head = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+                        property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n\
+                        0 0 0\n1 0 0\n0 1 0\n";
+        let mut stl_bin = vec![0u8; 80];
+        stl_bin.extend_from_slice(&1000u32.to_le_bytes());
+        stl_bin.extend_from_slice(&[0u8; 50]);
+        let mut stl_nan = vec![0u8; 80];
+        stl_nan.extend_from_slice(&1u32.to_le_bytes());
+        stl_nan.extend_from_slice(&[0u8; 12]);
+        stl_nan.extend_from_slice(&f32::NAN.to_le_bytes());
+        stl_nan.extend_from_slice(&[0u8; 34]);
+        let cases: Vec<(&str, Vec<u8>, FormatProblem)> = vec![
+            (
+                "a.ply",
+                format!("{ply_head}3 0 1 3\n").into_bytes(),
+                FormatProblem::BadValue,
+            ),
+            (
+                "b.ply",
+                format!("{ply_head}3 0 1 -1\n").into_bytes(),
+                FormatProblem::BadValue,
+            ),
+            (
+                "c.ply",
+                format!("{ply_head}2 0 1\n").into_bytes(),
+                FormatProblem::BadValue,
+            ),
+            (
+                "d.ply",
+                format!("{ply_head}3 0 1\n").into_bytes(),
+                FormatProblem::Truncated,
+            ),
+            (
+                "e.ply",
+                ply_head.replace("face 1", "face 1000000000").into_bytes(),
+                FormatProblem::SizeMismatch,
+            ),
+            ("f.stl", stl_bin, FormatProblem::Truncated),
+            ("g.stl", stl_nan, FormatProblem::BadValue),
+            (
+                "h.stl",
+                b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0\n".to_vec(),
+                FormatProblem::BadValue,
+            ),
+            (
+                "i.stl",
+                b"solid x\nfacet normal 0 0 1\nouter loop\n".to_vec(),
+                FormatProblem::Truncated,
+            ),
+            ("j.stl", b"abc".to_vec(), FormatProblem::Truncated),
+            (
+                "k.obj",
+                b"v 0 0 0\nv 1 0 0\nf 1 2 3\n".to_vec(),
+                FormatProblem::BadValue,
+            ),
+            (
+                "l.obj",
+                b"v 0 0 0\nv 1 0 0\nv 1 1 0\nf 0 1 2\n".to_vec(),
+                FormatProblem::BadValue,
+            ),
+            ("m.obj", b"v 0 nan 0\n".to_vec(), FormatProblem::BadValue),
+            ("n.obj", b"v 0 0\n".to_vec(), FormatProblem::BadValue),
+            ("o.off", b"OFF\n".to_vec(), FormatProblem::Unsupported),
+        ];
+        for (name, bytes, problem) in cases {
+            let path = dir.path().join(name);
+            std::fs::write(&path, &bytes).unwrap();
+            let err = read_mesh(&path).unwrap_err();
+            assert_eq!(err.problem(), Some(problem), "{name}: {err}");
+            assert!(err.to_string().contains(name), "{err}");
+        }
+    }
+
+    #[test]
+    fn writer_refuses_inconsistent_meshes() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("x.ply");
+        let mut m = octahedron();
+        m.triangles.push([0, 1, 6]);
+        assert!(matches!(write_mesh(&path, &m), Err(Error::InvalidInput(_))));
+        let mut m = octahedron();
+        m.normals.pop();
+        assert!(matches!(write_mesh(&path, &m), Err(Error::InvalidInput(_))));
+        assert!(matches!(
+            write_mesh(&dir.path().join("x.off"), &octahedron()),
+            Err(Error::InvalidInput(_))
+        ));
+        assert!(!path.exists());
+    }
+
+    #[test]
+    fn reads_the_fcal_phantom_cad_model() {
+        // A binary STL whose 80-byte header starts with "solid": must not be taken for ASCII.
+        let path = Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../../shared/data/real/fCal_1.0.stl"
+        ));
+        if !path.exists() {
+            eprintln!("skipping: {} not present", path.display());
+            return;
+        }
+        let m = read_mesh(path).unwrap();
+        assert_eq!(m.triangles.len(), (1_289_884 - 84) / 50);
+        let (lo, hi) = m.bounds().unwrap();
+        let size = hi - lo;
+        // The fCal 1.0 phantom is a box of some tens of millimetres on each side.
+        assert!(
+            size.min_element() > 10.0 && size.max_element() < 500.0,
+            "{size}"
+        );
+        let topo = m.topology();
+        assert!(topo.components >= 1);
+        assert!(m.area_mm2() > 0.0);
+    }
 }

@@ -1,0 +1,91 @@
+//! End-to-end tests of `echosurf compare`.
+
+use std::path::Path;
+use std::process::Command;
+
+use echosurf::mesh::Mesh;
+use glam::DVec3;
+
+/// An axis-aligned box from `lo` to `hi`, outward winding, closed.
+fn cuboid(lo: DVec3, hi: DVec3) -> Mesh {
+    let corner = |i: u32| {
+        DVec3::new(
+            if i & 1 != 0 { hi.x } else { lo.x },
+            if i & 2 != 0 { hi.y } else { lo.y },
+            if i & 4 != 0 { hi.z } else { lo.z },
+        )
+    };
+    let quads = [
+        [0, 2, 3, 1], // z = lo
+        [4, 5, 7, 6], // z = hi
+        [0, 1, 5, 4], // y = lo
+        [2, 6, 7, 3], // y = hi
+        [0, 4, 6, 2], // x = lo
+        [1, 3, 7, 5], // x = hi
+    ];
+    Mesh {
+        vertices: (0..8).map(corner).collect(),
+        normals: vec![],
+        triangles: quads
+            .iter()
+            .flat_map(|&[a, b, c, d]| [[a, b, c], [a, c, d]])
+            .collect(),
+    }
+}
+
+fn compare(mesh: &Path, truth: &Path, json: bool) -> std::process::Output {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_echosurf"));
+    cmd.arg("compare").arg(mesh).arg(truth);
+    if json {
+        cmd.arg("--json");
+    }
+    cmd.output().unwrap()
+}
+
+#[test]
+fn compare_reports_distances_completeness_and_topology() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = dir.path().join("truth.stl");
+    let mesh = dir.path().join("mesh.ply");
+    echosurf::io::write_mesh(&truth, &cuboid(DVec3::ZERO, DVec3::splat(10.0))).unwrap();
+    // Grown by 0.25 mm on every side: every point of one box is 0.25 mm from the other... except
+    // near edges and corners of the bigger box, where it is up to 0.25 * sqrt(3).
+    echosurf::io::write_mesh(&mesh, &cuboid(DVec3::splat(-0.25), DVec3::splat(10.25))).unwrap();
+
+    let out = compare(&mesh, &truth, true);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let mean = v["accuracy"]["mean_mm"].as_f64().unwrap();
+    let max = v["accuracy"]["max_mm"].as_f64().unwrap();
+    // Box faces are 0.25 mm apart; near the bigger box's edges distances grow to 0.25 * sqrt(2) and at its
+    // corners 0.25 * sqrt(3) (the vertices are part of the max).
+    assert!(mean > 0.25 && mean < 0.26, "{mean}");
+    assert!((max - 0.25 * 3f64.sqrt()).abs() < 1e-6, "{max}");
+    // Truth -> mesh: every truth point is exactly 0.25 mm inside.
+    assert!((v["reverse"]["max_mm"].as_f64().unwrap() - 0.25).abs() < 1e-6);
+    assert_eq!(v["completeness_1mm"].as_f64().unwrap(), 1.0);
+    assert_eq!(v["mesh_watertight"], true);
+    assert_eq!(v["truth_topology"]["components"], 1);
+    assert_eq!(v["hausdorff_mm"], v["accuracy"]["max_mm"]);
+
+    let out = compare(&mesh, &truth, false);
+    assert!(out.status.success());
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(
+        text.contains("completeness (truth within 1 mm) 100.00 %"),
+        "{text}"
+    );
+    assert!(text.contains("watertight"), "{text}");
+
+    // A missing or broken file is an error naming the file, not a panic.
+    let broken = dir.path().join("broken.ply");
+    std::fs::write(&broken, "ply\nformat ascii 1.0\nelement vertex 9\n").unwrap();
+    let out = compare(&broken, &truth, false);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("broken.ply"), "{err}");
+}

@@ -1,1 +1,0 @@
-//! Mesh-to-mesh surface distances and topology checks for scoring against ground truth.
