@@ -1,8 +1,44 @@
-//! `echosurf eval`.
+//! `echosurf eval`: evaluate a fitted model (value and gradient) at the points of a PLY point cloud.
+
+use std::path::PathBuf;
+
+use echosurf::io::PointCloud;
+use echosurf::rbf::RbfModel;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// Fitted model (.esrbf) from `echosurf fit`.
+    pub model: PathBuf,
+    /// Point cloud PLY (float x y z; other properties are kept).
+    pub points: PathBuf,
+    /// Output PLY: the input points with float `value`, `gx`, `gy`, `gz` added.
+    #[arg(long)]
+    pub out: PathBuf,
+}
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("`echosurf eval` is not implemented yet")
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let model = RbfModel::load(&args.model)?;
+    let cloud = echosurf::io::read_point_cloud(&args.points)?;
+    let (values, gradients) = model.values_and_gradients(&cloud.positions);
+    let mut scalars: Vec<(String, Vec<f32>)> = cloud
+        .scalars
+        .into_iter()
+        .filter(|(name, _)| !matches!(name.as_str(), "value" | "gx" | "gy" | "gz"))
+        .collect();
+    scalars.push(("value".into(), values.iter().map(|&v| v as f32).collect()));
+    scalars.push(("gx".into(), gradients.iter().map(|g| g.x as f32).collect()));
+    scalars.push(("gy".into(), gradients.iter().map(|g| g.y as f32).collect()));
+    scalars.push(("gz".into(), gradients.iter().map(|g| g.z as f32).collect()));
+    let out = PointCloud {
+        positions: cloud.positions,
+        scalars,
+    };
+    echosurf::io::write_point_cloud(&args.out, &out)?;
+    println!(
+        "evaluated {} points ({} centres) -> {}",
+        values.len(),
+        model.centres().len(),
+        args.out.display()
+    );
+    Ok(())
 }

@@ -45,3 +45,42 @@ pub fn ultrasound_like_samples(n: usize, seed: u64) -> (Vec<DVec3>, Vec<f64>) {
     }
     (points, values)
 }
+
+/// One row of [`bench_fit_scaling`].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ScalingRow {
+    pub samples: usize,
+    pub fit_seconds: f64,
+    pub iterations: usize,
+    pub max_residual: f64,
+    /// Time to evaluate values and gradients at `samples` fresh points.
+    pub eval_seconds: f64,
+    pub solver_bytes_per_sample: f64,
+}
+
+/// Fits [`ultrasound_like_samples`] of each size with `options` and times fit and evaluation.
+pub fn bench_fit_scaling(
+    sizes: &[usize],
+    options: &super::FitOptions,
+    seed: u64,
+) -> crate::Result<Vec<ScalingRow>> {
+    let mut rows = Vec::new();
+    for &n in sizes {
+        let (points, values) = ultrasound_like_samples(n, seed);
+        let (model, report) = super::fit(&points, &values, options, &crate::progress::NoProgress)?;
+        let (probes, _) = ultrasound_like_samples(n, seed.wrapping_add(1));
+        let start = std::time::Instant::now();
+        let (v, _) = model.values_and_gradients(&probes);
+        let eval_seconds = start.elapsed().as_secs_f64();
+        debug_assert_eq!(v.len(), n);
+        rows.push(ScalingRow {
+            samples: n,
+            fit_seconds: report.fit_seconds,
+            iterations: report.iterations,
+            max_residual: report.max_residual,
+            eval_seconds,
+            solver_bytes_per_sample: report.solver_bytes as f64 / n as f64,
+        });
+    }
+    Ok(rows)
+}

@@ -21,7 +21,7 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 
-pub use bench_data::ultrasound_like_samples;
+pub use bench_data::{ScalingRow, bench_fit_scaling, ultrasound_like_samples};
 pub use merge::merge_near_duplicates;
 pub use model::RbfModel;
 
