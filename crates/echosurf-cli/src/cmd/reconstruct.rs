@@ -102,7 +102,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(f) = args.fill_holes {
         let configured = echosurf::voxel::hole_filling_from_xml(&xml, &args.config)?;
         let pick = |want: fn(&HoleFillingElement) -> bool| {
-            configured.elements.iter().copied().find(|e| want(e))
+            configured.elements.iter().copied().find(&want)
         };
         options.hole_filling = match f {
             FillHolesArg::None => HoleFilling::none(),
