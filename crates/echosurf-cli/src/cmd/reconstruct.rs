@@ -101,9 +101,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if let Some(f) = args.fill_holes {
         let configured = echosurf::voxel::hole_filling_from_xml(&xml, &args.config)?;
-        let pick = |want: fn(&HoleFillingElement) -> bool| {
-            configured.elements.iter().copied().find(&want)
-        };
+        let pick =
+            |want: fn(&HoleFillingElement) -> bool| configured.elements.iter().copied().find(&want);
         options.hole_filling = match f {
             FillHolesArg::None => HoleFilling::none(),
             FillHolesArg::Stick => pick(|e| matches!(e, HoleFillingElement::Stick { .. }))
