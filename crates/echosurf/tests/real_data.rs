@@ -430,3 +430,25 @@ fn bad_frame_fields_beyond_dim_size() {
     let p = write(dir.path(), "beyond.mha", header, &[]);
     expect_problem(&p, FormatProblem::SizeMismatch);
 }
+
+/// The N-wire reconstruction was made with a clip rectangle (167 62 / 495 488): its origin is the min of
+/// the clip-rectangle corners of all frames (PLUS convention: origin .. min(origin + size, last pixel)),
+/// and its size floor((max - min) / 0.5) + 1 voxels, as in the older spine reconstruction.
+#[test]
+fn nwire_clip_corners_span_the_plus_reconstruction() {
+    let seq_path = real("NwirePhantomFreehand.igs.mha");
+    let seq = read_sequence(&seq_path).unwrap();
+    let cal = read_calibration(&real(CONFIGS[2])).unwrap();
+    let poses = resolve_poses(&seq, Some(&cal), ReferenceChoice::Auto, &seq_path).unwrap();
+    let (lo, hi) = io::clipped_world_bounds(&seq, &poses.poses, &cal.clip.unwrap()).unwrap();
+    let volume = read_sequence(&real("NwirePhantomFreehandReconstructed.mha")).unwrap();
+    assert_eq!(volume.header["Offset"], "-22.2573 -137.793 -58.5829");
+    let origin = DVec3::new(-22.2573, -137.793, -58.5829);
+    assert!((lo - origin).abs().max_element() < 1e-3, "min {lo}");
+    let dims = DVec3::new(
+        volume.width as f64,
+        volume.height as f64,
+        volume.frames.len() as f64,
+    );
+    assert_eq!(((hi - lo) / 0.5).floor() + 1.0, dims, "max {hi}");
+}

@@ -11,6 +11,9 @@ pub mod ply;
 pub mod pose;
 mod seq_decode;
 pub mod sequence;
+pub mod summary;
+
+pub use summary::{SequenceSummary, summarise};
 
 use std::path::Path;
 
@@ -18,9 +21,9 @@ pub use mesh_io::{read_mesh, write_mesh};
 pub use plus_config::{read_calibration, write_calibration};
 pub use ply::{PointCloud, read_point_cloud, write_point_cloud};
 pub use pose::{
-    FramePose, PathStats, PoseResolution, ReferenceChoice, Sweep, frame_corners, image_centre,
-    needs_calibration, path_stats, resolve_poses, split_path, split_sweeps, world_bounds,
-    world_frame_for,
+    FramePose, PathStats, PoseResolution, ReferenceChoice, Sweep, clip_corners_px,
+    clipped_world_bounds, frame_corners, image_centre, needs_calibration, path_stats,
+    resolve_poses, split_path, split_sweeps, world_bounds, world_frame_for,
 };
 pub use sequence::{
     Calibration, ClipRect, ElementType, FrameTransform, PixelData, TrackedFrame, TrackedSequence,

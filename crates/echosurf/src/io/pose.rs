@@ -7,7 +7,7 @@ use std::path::Path;
 
 use glam::{DMat4, DVec3};
 
-use super::sequence::{Calibration, TrackedFrame, TrackedSequence};
+use super::sequence::{Calibration, ClipRect, TrackedFrame, TrackedSequence};
 use crate::{Error, FormatProblem, Result};
 
 /// Consecutive usable frames whose image centres are further apart than this start a new sweep.
@@ -103,7 +103,8 @@ fn usable(frame: &TrackedFrame, names: &[&str]) -> std::result::Result<DMat4, St
         .iter()
         .find_map(|n| frame.transforms.get(*n).map(|t| (*n, t)))
     else {
-        return Err(format!("no {}Transform", names[0]));
+        let wanted: Vec<String> = names.iter().map(|n| format!("{n}Transform")).collect();
+        return Err(format!("no {}", wanted.join(" or ")));
     };
     if !t.valid {
         return Err(format!("{name}Transform INVALID"));
@@ -172,7 +173,7 @@ fn frame_pose(
     }
     // The image plane must not collapse: the pixel axes must span a plane.
     let plane = m.x_axis.truncate().cross(m.y_axis.truncate()).length();
-    if !(plane > 0.0) {
+    if plane.is_nan() || plane <= 0.0 {
         return Err("Image->World singular (pixel axes collapse)".into());
     }
     Ok(m)
@@ -273,6 +274,40 @@ pub fn world_bounds(sequence: &TrackedSequence, poses: &[FramePose]) -> Option<(
     Some(corners.fold((first, first), |(lo, hi), c| (lo.min(c), hi.max(c))))
 }
 
+/// Pixel-space corners (u0, v0, u1, v1) of the part of a W x H frame inside `clip`, as PLUS bounds its
+/// reconstruction volume (vtkPlusVolumeReconstructor::AddImageToExtent): from the clip origin to
+/// min(origin + size, last pixel) on each axis. `None` if the rectangle misses the image.
+pub fn clip_corners_px(width: usize, height: usize, clip: &ClipRect) -> Option<[f64; 4]> {
+    let last = [width.checked_sub(1)? as f64, height.checked_sub(1)? as f64];
+    let mut out = [0.0; 4];
+    for axis in 0..2 {
+        let lo = clip.origin_px[axis] as f64;
+        let hi = (clip.origin_px[axis] as f64 + clip.size_px[axis] as f64).min(last[axis]);
+        if clip.size_px[axis] == 0 || lo >= hi {
+            return None;
+        }
+        out[axis] = lo;
+        out[axis + 2] = hi;
+    }
+    Some(out)
+}
+
+/// Axis-aligned world box (min, max) of the clip-rectangle corners of all placed frames (see
+/// [`clip_corners_px`]); what PLUS sizes its reconstruction volume to.
+pub fn clipped_world_bounds(
+    sequence: &TrackedSequence,
+    poses: &[FramePose],
+    clip: &ClipRect,
+) -> Option<(DVec3, DVec3)> {
+    let [u0, v0, u1, v1] = clip_corners_px(sequence.width, sequence.height, clip)?;
+    let mut corners = poses.iter().flat_map(|p| {
+        [(u0, v0), (u1, v0), (u0, v1), (u1, v1)]
+            .map(|(u, v)| p.image_to_world.transform_point3(DVec3::new(u, v, 0.0)))
+    });
+    let first = corners.next()?;
+    Some(corners.fold((first, first), |(lo, hi), c| (lo.min(c), hi.max(c))))
+}
+
 /// Splits a path of points (with optional timestamps, same length) into runs: a new run starts where
 /// consecutive points are more than [`SWEEP_BREAK_MM`] apart or their timestamps more than
 /// [`SWEEP_BREAK_S`] apart.
@@ -335,7 +370,8 @@ pub struct PathStats {
 /// Statistics of consecutive points (e.g. image centres of one sweep).
 pub fn path_stats(points: &[DVec3]) -> PathStats {
     let mut steps: Vec<f64> = points.windows(2).map(|w| w[0].distance(w[1])).collect();
-    let path_length_mm = steps.iter().sum();
+    // Folded from +0.0: an empty f64 sum is -0.0, which would print as "-0.0 mm".
+    let path_length_mm = steps.iter().fold(0.0, |a, b| a + b);
     steps.sort_by(f64::total_cmp);
     let median = match steps.len() {
         0 => 0.0,

@@ -1,0 +1,182 @@
+//! `echosurf inspect` end to end on the real PLUS data.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn real(name: &str) -> PathBuf {
+    let beside = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/data/real/"
+    ));
+    if beside.is_dir() {
+        return beside.join(name);
+    }
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .ancestors()
+        .map(|a| a.join("shared/data/real"))
+        .find(|p| p.is_dir())
+        .unwrap_or_else(|| beside.to_path_buf())
+        .join(name)
+}
+
+const NN_MEAN: &str = "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml";
+
+fn inspect(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_echosurf"))
+        .arg("inspect")
+        .args(args)
+        .output()
+        .expect("run echosurf")
+}
+
+fn path_arg(name: &str) -> String {
+    real(name).to_string_lossy().into_owned()
+}
+
+#[test]
+fn json_has_the_documented_keys_and_the_spine_box() {
+    let out = inspect(&[
+        &path_arg("SpinePhantomFreehand.igs.mha"),
+        "--config",
+        &path_arg(NN_MEAN),
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
+    assert_eq!(v["frames"], 21);
+    assert_eq!(v["valid_frames"], 21);
+    assert_eq!(v["width"], 820);
+    assert_eq!(v["height"], 616);
+    assert_eq!(v["world_frame"], "Reference");
+    let sweeps = v["sweeps"].as_array().unwrap();
+    assert_eq!(sweeps.len(), 1);
+    assert_eq!(sweeps[0]["frames"], 21);
+    let path_mm = sweeps[0]["path_length_mm"].as_f64().unwrap();
+    assert!(
+        (25.0..45.0).contains(&path_mm),
+        "README: a sweep of about 33 mm, got {path_mm}"
+    );
+    let min: Vec<f64> = v["bounds_mm"]["min"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect();
+    for (got, want) in min.iter().zip([-74.5217, 165.573, 29.072]) {
+        assert!((got - want).abs() < 1e-3, "{min:?}");
+    }
+    assert_eq!(v["bounds_mm"]["max"].as_array().unwrap().len(), 3);
+    let px = v["pixel_size_mm"].as_array().unwrap();
+    assert!((px[0].as_f64().unwrap() - 0.085).abs() < 0.001);
+}
+
+#[test]
+fn without_calibration_it_says_so_and_still_summarises() {
+    let out = inspect(&[&path_arg("SpinePhantomFreehand.igs.mha")]);
+    assert!(out.status.success());
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("21 (21 valid, 0 skipped)"), "{text}");
+    assert!(text.contains("calibration"), "{text}");
+    assert!(
+        text.contains("ProbeToTracker, ReferenceToTracker, StylusToTracker"),
+        "{text}"
+    );
+    let out = inspect(&[&path_arg("SpinePhantomFreehand.igs.mha"), "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(v["bounds_mm"].is_null());
+    assert_eq!(v["sweeps"].as_array().unwrap().len(), 1);
+}
+
+#[test]
+fn every_real_sequence_is_summarised() {
+    for name in [
+        "NwirePhantomFreehand.igs.mha",
+        "NwirePhantomFreehand.igs.nrrd",
+        "NwirePhantomFreehandReconstructed.mha",
+        "SpinePhantomFreehandReconstructed.mha",
+        "vtkVolumeReconstructorTestNNMEANvolumeRef.mha",
+        "Prostate10_tracker.igs.mha",
+        "Prostate10_video.igs.mhd",
+        "WaterTankBottomTranslationCombined.igs.mha",
+    ] {
+        let out = inspect(&[&path_arg(name), "--json"]);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{name}: {stderr}");
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert!(v["frames"].as_u64().unwrap() >= 10, "{name}");
+        // Reconstructed volumes carry no tracking: described, but no frame is placed.
+        let volume = name.contains("Reconstructed") || name.starts_with("vtkVolume");
+        assert_eq!(v["valid_frames"] == 0, volume, "{name}");
+        assert_eq!(v["sweeps"].as_array().unwrap().is_empty(), volume, "{name}");
+        let text = inspect(&[&path_arg(name)]);
+        assert!(text.status.success(), "{name}");
+    }
+}
+
+#[test]
+fn bad_inputs_exit_non_zero_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    // All frames INVALID.
+    let bytes = std::fs::read(real("SpinePhantomFreehand.igs.mha")).unwrap();
+    let marker = b"ImageStatus = OK";
+    let mut edited = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    let header_end = bytes
+        .windows(b"ElementDataFile".len())
+        .position(|w| w == b"ElementDataFile")
+        .unwrap();
+    while i < bytes.len() {
+        if i < header_end && bytes[i..].starts_with(marker) {
+            edited.extend_from_slice(b"ImageStatus = INVALID");
+            i += marker.len();
+        } else {
+            edited.push(bytes[i]);
+            i += 1;
+        }
+    }
+    let seq = dir.path().join("all_invalid.igs.mha");
+    std::fs::write(&seq, edited).unwrap();
+    let out = inspect(&[seq.to_str().unwrap(), "--config", &path_arg(NN_MEAN)]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("all_invalid.igs.mha") && err.contains("INVALID"),
+        "{err}"
+    );
+
+    // Calibration without Image->Probe.
+    let xml = std::fs::read_to_string(real(NN_MEAN))
+        .unwrap()
+        .replace("From=\"Image\"", "From=\"Camera\"");
+    let cal = dir.path().join("no_image_to_probe.xml");
+    std::fs::write(&cal, xml).unwrap();
+    let out = inspect(&[
+        &path_arg("SpinePhantomFreehand.igs.mha"),
+        "--config",
+        cal.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("no_image_to_probe.xml") && err.contains("Image"),
+        "{err}"
+    );
+
+    // Reference frame forced on a recording without a reference sensor.
+    let out = inspect(&[
+        &path_arg("Prostate10_tracker.igs.mha"),
+        "--reference",
+        "reference",
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("Reference"));
+
+    // A file that does not exist.
+    let out = inspect(&[dir.path().join("nothing.mha").to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("nothing.mha"));
+}
