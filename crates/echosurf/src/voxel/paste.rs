@@ -145,6 +145,7 @@ pub(super) fn paste_frames<T: Store>(
     let slab_count = (rayon::current_num_threads() * 4).clamp(1, geometry.dims[2].max(1));
     let slab_depth = geometry.dims[2].div_ceil(slab_count).max(1);
     let chunk_len = (slab_depth * slice_len).max(1);
+    let slabs = n.div_ceil(chunk_len);
 
     let inserted: Vec<_> = poses
         .poses
@@ -229,21 +230,22 @@ pub(super) fn paste_frames<T: Store>(
                         row
                     })
                     .collect();
-                let entries: Vec<NnEntry> = rows.into_iter().flatten().collect();
-                stats.pixels_inserted += entries.len() as u64;
+                // Each slab's pixels, still in raster order.
+                let mut buckets: Vec<Vec<NnEntry>> = vec![Vec::new(); slabs];
+                for e in rows.into_iter().flatten() {
+                    stats.pixels_inserted += 1;
+                    buckets[e.voxel as usize / chunk_len].push(e);
+                }
                 overflows += values
                     .par_chunks_mut(chunk_len)
                     .zip(accumulation.par_chunks_mut(chunk_len))
+                    .zip(buckets.par_iter())
                     .enumerate()
-                    .map(|(slab, (vals, accs))| {
+                    .map(|(slab, ((vals, accs), bucket))| {
                         let lo = slab * chunk_len;
-                        let hi = lo + vals.len();
                         let mut overflow = 0u64;
-                        for e in &entries {
+                        for e in bucket {
                             let v = e.voxel as usize;
-                            if v < lo || v >= hi {
-                                continue;
-                            }
                             overflow += insert_nn(
                                 &mut vals[v - lo],
                                 &mut accs[v - lo],
@@ -281,19 +283,31 @@ pub(super) fn paste_frames<T: Store>(
                         row
                     })
                     .collect();
-                let entries: Vec<LinearEntry> = rows.into_iter().flatten().collect();
-                stats.pixels_inserted += entries.len() as u64;
+                // Each slab's pixels (a pixel straddling two slabs goes to both), in raster
+                // order; insert_linear applies only the corners inside the slab.
+                let mut buckets: Vec<Vec<LinearEntry>> = vec![Vec::new(); slabs];
+                for e in rows.into_iter().flatten() {
+                    stats.pixels_inserted += 1;
+                    let z0 = e.position[2].floor() as usize;
+                    let z1 = z0 + usize::from(e.position[2] != e.position[2].floor());
+                    let (s0, s1) = (z0 / slab_depth, z1 / slab_depth);
+                    buckets[s0].push(e);
+                    if s1 != s0 {
+                        buckets[s1].push(e);
+                    }
+                }
                 let nx = geometry.dims[0];
                 let ny = geometry.dims[1];
                 overflows += values
                     .par_chunks_mut(chunk_len)
                     .zip(accumulation.par_chunks_mut(chunk_len))
+                    .zip(buckets.par_iter())
                     .enumerate()
-                    .map(|(slab, (vals, accs))| {
+                    .map(|(slab, ((vals, accs), bucket))| {
                         let k_lo = slab * slab_depth;
                         let k_hi = k_lo + vals.len() / slice_len.max(1);
                         let mut overflow = 0u64;
-                        for e in &entries {
+                        for e in bucket {
                             overflow += insert_linear(
                                 vals,
                                 accs,
