@@ -128,6 +128,10 @@ fn bench_surface(c: &mut Criterion) {
     group.bench_function("duck_sized_field_0.5mm", |b| {
         b.iter(|| extract_surfaces_with_stats(field, &[0.0], &domain, &options).unwrap())
     });
+    // Two levels (as the duck's outer and inner wall): the lattice is shared, levels cluster in parallel.
+    group.bench_function("duck_sized_field_two_levels_0.5mm", |b| {
+        b.iter(|| extract_surfaces_with_stats(field, &[0.0, 2.0], &domain, &options).unwrap())
+    });
     group.finish();
 }
 
