@@ -70,7 +70,7 @@ impl DuckField {
 }
 
 fn seeds(field: &DuckField) -> Vec<DVec3> {
-    // Points near the surface, as the samples would be: rays from the body centre, bisected.
+    // Points near the surface, as the samples would be: rays from the body centre, bisected, jittered.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
     (0..2000)
         .map(|_| {
@@ -89,7 +89,8 @@ fn seeds(field: &DuckField) -> Vec<DVec3> {
                     hi = mid;
                 }
             }
-            dir * lo
+            // Samples scatter through the bright band, a few mm either side of the surface.
+            dir * (lo + rng.random_range(-3.0..1.0))
         })
         .collect()
 }
@@ -127,6 +128,21 @@ fn bench_surface(c: &mut Criterion) {
     group.sample_size(10);
     group.bench_function("duck_sized_field_0.5mm", |b| {
         b.iter(|| extract_surfaces_with_stats(field, &[0.0], &domain, &options).unwrap())
+    });
+    // Two levels (as the duck's outer and inner wall): the lattice is shared, levels cluster in parallel.
+    let (meshes2, stats2) =
+        extract_surfaces_with_stats(field, &[0.0, 2.0], &domain, &options).unwrap();
+    eprintln!(
+        "two levels: {:?} triangles, {} lattice nodes, {:.2} evaluations per triangle",
+        meshes2
+            .iter()
+            .map(|m| m.triangles.len())
+            .collect::<Vec<_>>(),
+        stats2.lattice_nodes_evaluated,
+        stats2.evaluations_per_triangle()
+    );
+    group.bench_function("duck_sized_field_two_levels_0.5mm", |b| {
+        b.iter(|| extract_surfaces_with_stats(field, &[0.0, 2.0], &domain, &options).unwrap())
     });
     group.finish();
 }

@@ -16,6 +16,7 @@ mod tests;
 mod trust;
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 use crate::mesh::Mesh;
 use crate::{Error, Result};
@@ -187,13 +188,28 @@ pub fn extract_surfaces_with_stats(
         ..Default::default()
     };
     let mut meshes = Vec::with_capacity(levels.len());
-    for (&level, cells) in levels.iter().zip(&crossed.per_level) {
-        let raw = rmt::march_tetrahedra(&lattice, cells, level, options.cluster_cell_factor, |n| {
-            crossed.nodes.get(n)
-        });
-        let h = lattice.spacing_mm;
-        let merged =
-            clustering::cluster_vertices(&raw.positions, &raw.cluster_keys, &raw.triangles, h * h);
+    // Marching tetrahedra and clustering are sequential per level; levels run in parallel (each result
+    // depends only on its level, so the order of completion does not matter).
+    let h = lattice.spacing_mm;
+    let merged_levels: Vec<(rmt::RawSurface, clustering::ClusteredSurface)> = levels
+        .par_iter()
+        .zip(crossed.per_level.par_iter())
+        .map(|(&level, cells)| {
+            let raw =
+                rmt::march_tetrahedra(&lattice, cells, level, options.cluster_cell_factor, |n| {
+                    crossed.nodes.get(n)
+                });
+            let merged = clustering::cluster_vertices(
+                &raw.positions,
+                &raw.cluster_keys,
+                &raw.triangles,
+                h * h,
+            );
+            (raw, merged)
+        })
+        .collect();
+    for ((&level, cells), (raw, merged)) in levels.iter().zip(&crossed.per_level).zip(merged_levels)
+    {
         let mut level_stats = LevelStats {
             level,
             crossed_cells: cells.len(),
