@@ -1,8 +1,237 @@
-//! `echosurf extract`.
+//! `echosurf extract`: sequence + calibration -> surface mesh(es), with an optional report and preview.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use echosurf::io::{self, ReferenceChoice};
+use echosurf::pipeline::{self, ExtractOptions, ExtractOutput, IsoLevels};
+use echosurf::rbf::FitOptions;
+use echosurf::render::{RenderOptions, render_views, write_png};
+use echosurf::segment::InitialBand;
+use echosurf::surface::SurfaceOptions;
+
+use super::segment::SegmentArgs;
+use crate::progress::BarProgress;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {}
+pub struct Args {
+    #[command(flatten)]
+    pub segment: SegmentArgs,
+    /// Iso-level(s) of the boundary echo, comma separated (one mesh each), or `auto`: between the
+    /// background and boundary echo levels of the kept pixels.
+    #[arg(long, default_value = "auto")]
+    pub iso: String,
+    /// Output mesh (.ply, .stl or .obj). With several levels, `_iso<LEVEL>` is added before the extension.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Random decimation target for the samples handed to the fit.
+    #[arg(long, default_value_t = 100_000)]
+    pub max_samples: usize,
+    /// Smoothing weight w in mm (larger = smoother; 0 interpolates the speckle).
+    #[arg(long)]
+    pub smoothing: Option<f64>,
+    /// Fitting accuracy: largest allowed |s(x_i) - f_i - w l_i| in grey levels.
+    #[arg(long)]
+    pub accuracy: Option<f64>,
+    /// Lattice spacing of the surfacer in mm.
+    #[arg(long, default_value_t = 0.5)]
+    pub resolution: f64,
+    /// Region of trust: no surface farther than this (mm) from any sample. Default: from frame spacing.
+    #[arg(long)]
+    pub trust_distance: Option<f64>,
+    /// Seed of the random decimation (and of everything else random).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Write what every stage did (counts, parameters, time, peak memory) as JSON.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Write a rendered picture of the mesh with the frame outlines.
+    #[arg(long)]
+    pub preview: Option<PathBuf>,
+    /// Also save the fitted model (.esrbf) for `echosurf surface`.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Also write the fitted samples as a point cloud PLY.
+    #[arg(long)]
+    pub samples: Option<PathBuf>,
+}
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("`echosurf extract` is not implemented yet")
+/// Parses `--iso`: `auto` or comma-separated numbers.
+pub fn parse_iso(text: &str) -> anyhow::Result<IsoLevels> {
+    if text.trim().eq_ignore_ascii_case("auto") {
+        return Ok(IsoLevels::Auto);
+    }
+    let levels = text
+        .split(',')
+        .map(|s| {
+            s.trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .with_context(|| format!("--iso: `{s}` is not a number (expected auto or LEVEL[,LEVEL...])"))
+        })
+        .collect::<anyhow::Result<Vec<f64>>>()?;
+    Ok(IsoLevels::Levels(levels))
+}
+
+/// Where the mesh of `level` goes: `out` itself for a single level, else `stem_iso<level>.ext`.
+pub fn mesh_path(out: &Path, level: f64, several: bool) -> PathBuf {
+    if !several {
+        return out.to_path_buf();
+    }
+    let stem = out.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let ext = out.extension().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "ply".into());
+    out.with_file_name(format!("{stem}_iso{}.{ext}", format_level(level)))
+}
+
+fn format_level(level: f64) -> String {
+    if level.fract() == 0.0 { format!("{level:.0}") } else { format!("{level}") }
+}
+
+fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
+    Ok(match text.to_ascii_lowercase().as_str() {
+        "auto" => ReferenceChoice::Auto,
+        "tracker" => ReferenceChoice::Tracker,
+        "reference" => ReferenceChoice::Reference,
+        other => anyhow::bail!("--world {other}: expected auto, tracker or reference"),
+    })
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let seg = &args.segment;
+    let iso = parse_iso(&args.iso)?;
+    if !(args.resolution.is_finite() && args.resolution > 0.0) {
+        anyhow::bail!("--resolution must be a positive number of mm");
+    }
+    let sequence = io::read_sequence(&seg.sequence)?;
+    let calibration = io::read_calibration(&seg.config)?;
+    let init = match &seg.init {
+        Some(path) => InitialBand::load(path, sequence.width, sequence.height)?,
+        None => InitialBand::Auto,
+    };
+    let defaults = FitOptions::default();
+    let options = ExtractOptions {
+        iso,
+        init,
+        segment: seg.options(),
+        reference: world_choice(&seg.world)?,
+        max_samples: args.max_samples,
+        seed: args.seed,
+        fit: FitOptions {
+            smoothing: args.smoothing.unwrap_or(defaults.smoothing),
+            accuracy: args.accuracy.unwrap_or(defaults.accuracy),
+            seed: args.seed,
+            ..defaults
+        },
+        surface: SurfaceOptions {
+            resolution_mm: args.resolution,
+            ..SurfaceOptions::default()
+        },
+        trust_distance_mm: args.trust_distance,
+    };
+    let progress = BarProgress::new();
+    let output = pipeline::extract(&sequence, Some(&calibration), &options, &progress)
+        .with_context(|| format!("extracting a surface from {}", seg.sequence.display()))?;
+    write_outputs(&args, &output)?;
+    print_summary(&args, &output);
+    Ok(())
+}
+
+/// Writes meshes, then the optional model, samples, report and preview (each atomically).
+pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
+    let several = output.surfaces.len() > 1;
+    for s in &output.surfaces {
+        io::write_mesh(&mesh_path(&args.out, s.level, several), &s.mesh)?;
+    }
+    if let Some(path) = &args.model {
+        output.model.save(path)?;
+    }
+    if let Some(path) = &args.samples {
+        io::write_point_cloud(path, &output.samples.to_point_cloud())?;
+    }
+    if let Some(path) = &args.report {
+        let json = serde_json::to_string_pretty(&output.report)?;
+        io::atomic::write_bytes_atomic(path, json.as_bytes())?;
+    }
+    if let Some(path) = &args.preview {
+        write_preview(path, output, None)?;
+    }
+    Ok(())
+}
+
+/// Renders all surfaces (merged) with the frame outlines, optionally over a ghost of the truth.
+pub fn write_preview(path: &Path, output: &ExtractOutput, ghost: Option<echosurf::mesh::Mesh>) -> anyhow::Result<()> {
+    let mut mesh = echosurf::mesh::Mesh::default();
+    for s in &output.surfaces {
+        let base = mesh.vertices.len() as u32;
+        mesh.vertices.extend(&s.mesh.vertices);
+        mesh.normals.extend(&s.mesh.normals);
+        mesh.triangles.extend(s.mesh.triangles.iter().map(|t| t.map(|i| i + base)));
+    }
+    if mesh.normals.len() != mesh.vertices.len() {
+        mesh.normals.clear();
+    }
+    if mesh.is_empty() {
+        eprintln!("warning: no surface to render; preview not written");
+        return Ok(());
+    }
+    // Every 8th frame's outline is enough to show the sweep without hiding the surface.
+    let frames = output.frame_outlines.chunks(4).step_by(8).flatten().copied().collect();
+    let options = RenderOptions {
+        overlay_lines: frames,
+        ghost,
+        ..RenderOptions::default()
+    };
+    let image = render_views(&mesh, &options)?;
+    write_png(path, &image)?;
+    Ok(())
+}
+
+fn print_summary(args: &Args, output: &ExtractOutput) {
+    let r = &output.report;
+    let c = &r.counts;
+    println!(
+        "{} of {} frames used; kept {} of {} pixels ({:.1}%); {} samples -> {} centres",
+        c.frames_used,
+        c.frames,
+        c.kept_pixels,
+        c.pixels,
+        100.0 * c.kept_pixels as f64 / c.pixels.max(1) as f64,
+        c.samples,
+        c.centres
+    );
+    if let Some(l) = r.levels {
+        println!(
+            "echo levels: background {:.1}, boundary {:.1}{}",
+            l.background,
+            l.boundary,
+            if r.parameters.iso_auto { format!(", iso auto = {:.1}", l.iso) } else { String::new() }
+        );
+    }
+    println!(
+        "fit: w = {} mm, max residual {:.2} grey, {} iterations",
+        r.parameters.smoothing_mm, r.fit.max_residual, r.fit.iterations
+    );
+    let several = output.surfaces.len() > 1;
+    for s in &output.surfaces {
+        let t = s.mesh.topology();
+        println!(
+            "iso {}: {} triangles, {} component(s), {} -> {}",
+            format_level(s.level),
+            s.mesh.triangles.len(),
+            t.components,
+            if t.is_closed_manifold() { "closed manifold" } else if t.is_oriented_manifold() { "manifold with boundary" } else { "NOT manifold" },
+            mesh_path(&args.out, s.level, several).display()
+        );
+    }
+    let stages: Vec<String> = r.stages.iter().map(|s| format!("{} {:.2}s", s.stage, s.seconds)).collect();
+    println!(
+        "time {:.2} s ({}); peak memory {}",
+        r.total_seconds,
+        stages.join(", "),
+        r.peak_rss_bytes.map(|b| format!("{:.0} MB", b as f64 / 1e6)).unwrap_or_else(|| "n/a".into())
+    );
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
+    }
 }
