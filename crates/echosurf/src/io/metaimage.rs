@@ -531,7 +531,14 @@ fn sequence_header_text(
             sequence.pixels.element_type().metaimage_name()
         },
     )?;
-    line("Kinds", &get("Kinds", "domain domain list"))?;
+    // NDims is always 3 here, so a kept Kinds of another length (from a 2D file) is replaced.
+    let kinds = get("Kinds", "domain domain list");
+    let kinds = if kinds.split_ascii_whitespace().count() == 3 {
+        kinds
+    } else {
+        "domain domain list".to_string()
+    };
+    line("Kinds", &kinds)?;
     line("Offset", &get("Offset", "0 0 0"))?;
     line(
         "TransformMatrix",
