@@ -271,6 +271,13 @@ impl VoxelOptions {
         config::options_from_attributes(&calibration.volume_reconstruction, calibration.clip, None)
     }
 
+    /// Options from a PLUS device-set file: every `VolumeReconstruction` attribute and its
+    /// `HoleFilling` elements (defaults when the file has no such element).
+    pub fn from_config_file(path: &std::path::Path) -> Result<Self> {
+        let xml = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        options_from_config_xml(&xml, path)
+    }
+
     fn validate(&self) -> Result<()> {
         let s = self.spacing_mm;
         if !(s.is_finite() && s.min_element() > 0.0) {
