@@ -439,7 +439,8 @@ fn bytes_per_voxel(element_type: ElementType, hole_filling: bool) -> u64 {
     value + 2 + if hole_filling { value } else { 0 }
 }
 
-/// Memory the grid and its buffers would need, bytes.
+/// Memory the grid and its buffers would need, bytes (writing a `.mha` needs about one more byte
+/// per voxel for the encoded data).
 pub fn estimated_memory_bytes(
     geometry: &GridGeometry,
     element_type: ElementType,
@@ -560,7 +561,10 @@ fn check_memory_budget(
     geometry: &GridGeometry,
     element_type: ElementType,
 ) -> Result<()> {
-    let need = estimated_memory_bytes(geometry, element_type, options);
+    // Plus one frame's working set: grey levels (f32) and up to two copies of its pixel entries
+    // (32 bytes each when trilinear), small next to any grid that matters.
+    let frame_bytes = (sequence.width * sequence.height) as u128 * (4 + 2 * 32);
+    let need = estimated_memory_bytes(geometry, element_type, options) + frame_bytes;
     let budget = options.memory_budget_bytes as u128;
     // Flat voxel indices are u32 in the splatting buffers.
     let too_many = geometry.voxel_count() >= u32::MAX as u128;
@@ -589,7 +593,7 @@ fn check_memory_budget(
             ..options.clone()
         };
         if let Ok(g) = grid_geometry(sequence, poses, &trial)
-            && estimated_memory_bytes(&g, element_type, &trial) <= budget
+            && estimated_memory_bytes(&g, element_type, &trial) + frame_bytes <= budget
             && g.voxel_count() < u32::MAX as u128
         {
             return Err(Error::ResourceLimit(format!(
