@@ -122,7 +122,7 @@ fn spine_nn_mean_matches_plus_reference() {
 
 /// The older PLUS reconstruction of the same sweep (`SpinePhantomFreehandReconstructed.mha`, made
 /// with the LINEAR / MEAN / STICK configuration) truncated the voxel count: with the `Floor` grid
-/// rule the trilinear route reproduces its grid and its grey levels.
+/// rule the trilinear route reproduces its grid and every grey level.
 #[test]
 fn spine_linear_mean_matches_older_plus_reconstruction() {
     let seq_path = real("SpinePhantomFreehand.igs.mha");
@@ -159,9 +159,7 @@ fn spine_linear_mean_matches_older_plus_reconstruction() {
         pct(r.hit_within_one, r.hit_total),
         pct(r.hole_within_one, r.hole_total)
     );
-    // Measured 99.959% within +/-1 and 99.587% exact. The rest is not explained voxel by voxel;
-    // the likely cause is that PLUS (Optimization="FULL") computes the trilinear weights in 14-bit
-    // fixed point while echosurf uses double, and that this file comes from an older PLUS.
-    assert!(pct(r.within_one, r.total) >= 99.9);
-    assert!(pct(r.hit_within_one, r.hit_total) >= 99.9);
+    // With PLUS's fixed-point trilinear weights and running mean, every voxel is reproduced.
+    assert_eq!(r.exact, r.total);
+    assert_eq!(ours.values, old.values);
 }

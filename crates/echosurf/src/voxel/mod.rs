@@ -8,7 +8,8 @@
 //!   other versions);
 //! - pixel (u, v) lands at `M * (u, v, 0, 1)` in voxel index space (by default with PLUS's 14-bit
 //!   fixed-point matrix, see [`PositionArithmetic`]), rounded with `floor(x + 0.5)` (nearest
-//!   neighbour) or spread over the 8 surrounding voxels (trilinear, weights in double);
+//!   neighbour) or spread over the 8 surrounding voxels (trilinear; for integer data the weights,
+//!   running mean and accumulation also in PLUS's fixed point);
 //! - MEAN keeps PLUS's running mean with an accumulation buffer (256 per whole pixel, saturating at
 //!   65535) and PLUS's integer arithmetic, so rounding matches;
 //! - hole filling reads the unfilled volume and writes a new one (STICK, GAUSSIAN, ...), as
@@ -172,9 +173,10 @@ impl HoleFilling {
     }
 }
 
-/// Arithmetic of the pixel -> voxel-index mapping. PLUS's `Optimization="FULL"` (its default)
-/// quantises the mapping to fixed point with 14 fractional bits; the bits decide which voxel a
-/// pixel near a voxel boundary lands in, so matching PLUS voxel for voxel needs the same choice.
+/// Arithmetic of the pixel -> voxel-index mapping (and of trilinear splatting of integer data).
+/// PLUS's `Optimization="FULL"` (its default) quantises the mapping to fixed point with 14
+/// fractional bits; the bits decide which voxel a pixel near a voxel boundary lands in, so matching
+/// PLUS voxel for voxel needs the same choice.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum PositionArithmetic {
     /// Matrix entries rounded to multiples of 2^-14, positions summed exactly in integers
