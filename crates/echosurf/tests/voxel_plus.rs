@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use echosurf::io::{ReferenceChoice, read_calibration, read_sequence, resolve_poses};
 use echosurf::progress::NoProgress;
 use echosurf::voxel::{
-    GridRounding, Volume, grid_geometry, options_from_config_xml, read_volume_mha,
+    GridRounding, Interpolation, Volume, grid_geometry, options_from_config_xml, read_volume_mha,
     reconstruct_volume,
 };
 
@@ -120,10 +120,11 @@ fn spine_nn_mean_matches_plus_reference() {
     assert_eq!(ours.stats.accumulation_overflows, 0);
 }
 
-/// The older PLUS reconstruction of the same sweep truncated the voxel count; the `Floor` rule
-/// reproduces its grid.
+/// The older PLUS reconstruction of the same sweep (`SpinePhantomFreehandReconstructed.mha`, made
+/// with the LINEAR / MEAN / STICK configuration) truncated the voxel count: with the `Floor` grid
+/// rule the trilinear route reproduces its grid and every grey level.
 #[test]
-fn spine_grid_rounding_variants_match_plus_versions() {
+fn spine_linear_mean_matches_older_plus_reconstruction() {
     let seq_path = real("SpinePhantomFreehand.igs.mha");
     let cfg_path = real("PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml");
     let sequence = read_sequence(&seq_path).unwrap();
@@ -137,15 +138,28 @@ fn spine_grid_rounding_variants_match_plus_versions() {
     .unwrap();
     let xml = std::fs::read_to_string(&cfg_path).unwrap();
     let mut options = options_from_config_xml(&xml, &cfg_path).unwrap();
+    assert_eq!(options.interpolation, Interpolation::Linear);
     let old = read_volume_mha(&real("SpinePhantomFreehandReconstructed.mha")).unwrap();
-    options.grid_rounding = GridRounding::Floor;
-    let g = grid_geometry(&sequence, &poses, &options).unwrap();
-    assert_eq!(g.dims, old.dims);
-    assert_eq!(g.dims, [147, 106, 104]);
-    assert!((g.origin_mm - old.origin_mm).abs().max_element() < 1e-3);
     options.grid_rounding = GridRounding::Ceil;
     assert_eq!(
         grid_geometry(&sequence, &poses, &options).unwrap().dims,
         [148, 107, 105]
     );
+    options.grid_rounding = GridRounding::Floor;
+    let ours = reconstruct_volume(&sequence, &poses, &options, &NoProgress).unwrap();
+    assert_eq!(ours.dims, old.dims);
+    assert_eq!(ours.dims, [147, 106, 104]);
+    assert!((ours.origin_mm - old.origin_mm).abs().max_element() < 1e-3);
+    let r = compare(&ours, &old);
+    let pct = |a: usize, b: usize| 100.0 * a as f64 / b.max(1) as f64;
+    eprintln!(
+        "LINEAR vs older PLUS: {:.3}% within +/-1, {:.3}% exact; hit {:.3}%, holes {:.3}%",
+        pct(r.within_one, r.total),
+        pct(r.exact, r.total),
+        pct(r.hit_within_one, r.hit_total),
+        pct(r.hole_within_one, r.hole_total)
+    );
+    // With PLUS's fixed-point trilinear weights and running mean, every voxel is reproduced.
+    assert_eq!(r.exact, r.total);
+    assert_eq!(ours.values, old.values);
 }

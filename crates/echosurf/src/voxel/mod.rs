@@ -8,7 +8,8 @@
 //!   other versions);
 //! - pixel (u, v) lands at `M * (u, v, 0, 1)` in voxel index space (by default with PLUS's 14-bit
 //!   fixed-point matrix, see [`PositionArithmetic`]), rounded with `floor(x + 0.5)` (nearest
-//!   neighbour) or spread over the 8 surrounding voxels (trilinear, weights in double);
+//!   neighbour) or spread over the 8 surrounding voxels (trilinear; for integer data the weights,
+//!   running mean and accumulation also in PLUS's fixed point);
 //! - MEAN keeps PLUS's running mean with an accumulation buffer (256 per whole pixel, saturating at
 //!   65535) and PLUS's integer arithmetic, so rounding matches;
 //! - hole filling reads the unfilled volume and writes a new one (STICK, GAUSSIAN, ...), as
@@ -172,9 +173,10 @@ impl HoleFilling {
     }
 }
 
-/// Arithmetic of the pixel -> voxel-index mapping. PLUS's `Optimization="FULL"` (its default)
-/// quantises the mapping to fixed point with 14 fractional bits; the bits decide which voxel a
-/// pixel near a voxel boundary lands in, so matching PLUS voxel for voxel needs the same choice.
+/// Arithmetic of the pixel -> voxel-index mapping (and of trilinear splatting of integer data).
+/// PLUS's `Optimization="FULL"` (its default) quantises the mapping to fixed point with 14
+/// fractional bits; the bits decide which voxel a pixel near a voxel boundary lands in, so matching
+/// PLUS voxel for voxel needs the same choice.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum PositionArithmetic {
     /// Matrix entries rounded to multiples of 2^-14, positions summed exactly in integers
@@ -269,6 +271,13 @@ impl VoxelOptions {
     /// read the elements themselves.
     pub fn from_calibration(calibration: &crate::io::Calibration) -> Result<Self> {
         config::options_from_attributes(&calibration.volume_reconstruction, calibration.clip, None)
+    }
+
+    /// Options from a PLUS device-set file: every `VolumeReconstruction` attribute and its
+    /// `HoleFilling` elements (defaults when the file has no such element).
+    pub fn from_config_file(path: &std::path::Path) -> Result<Self> {
+        let xml = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        options_from_config_xml(&xml, path)
     }
 
     fn validate(&self) -> Result<()> {
@@ -432,7 +441,8 @@ fn bytes_per_voxel(element_type: ElementType, hole_filling: bool) -> u64 {
     value + 2 + if hole_filling { value } else { 0 }
 }
 
-/// Memory the grid and its buffers would need, bytes.
+/// Memory the grid and its buffers would need, bytes (writing a `.mha` needs about one more byte
+/// per voxel for the encoded data).
 pub fn estimated_memory_bytes(
     geometry: &GridGeometry,
     element_type: ElementType,
@@ -553,7 +563,10 @@ fn check_memory_budget(
     geometry: &GridGeometry,
     element_type: ElementType,
 ) -> Result<()> {
-    let need = estimated_memory_bytes(geometry, element_type, options);
+    // Plus one frame's working set: grey levels (f32) and up to two copies of its pixel entries
+    // (32 bytes each when trilinear), small next to any grid that matters.
+    let frame_bytes = (sequence.width * sequence.height) as u128 * (4 + 2 * 32);
+    let need = estimated_memory_bytes(geometry, element_type, options) + frame_bytes;
     let budget = options.memory_budget_bytes as u128;
     // Flat voxel indices are u32 in the splatting buffers.
     let too_many = geometry.voxel_count() >= u32::MAX as u128;
@@ -582,7 +595,7 @@ fn check_memory_budget(
             ..options.clone()
         };
         if let Ok(g) = grid_geometry(sequence, poses, &trial)
-            && estimated_memory_bytes(&g, element_type, &trial) <= budget
+            && estimated_memory_bytes(&g, element_type, &trial) + frame_bytes <= budget
             && g.voxel_count() < u32::MAX as u128
         {
             return Err(Error::ResourceLimit(format!(

@@ -298,6 +298,8 @@ pub(super) fn paste_frames<T: Store>(
                 }
                 let nx = geometry.dims[0];
                 let ny = geometry.dims[1];
+                // PLUS's fixed-point trilinear arithmetic applies to integer data.
+                let fixed_linear = fixed && integer;
                 overflows += values
                     .par_chunks_mut(chunk_len)
                     .zip(accumulation.par_chunks_mut(chunk_len))
@@ -308,15 +310,26 @@ pub(super) fn paste_frames<T: Store>(
                         let k_hi = k_lo + vals.len() / slice_len.max(1);
                         let mut overflow = 0u64;
                         for e in bucket {
-                            overflow += insert_linear(
-                                vals,
-                                accs,
-                                [nx, ny],
-                                (k_lo, k_hi),
-                                e,
-                                options.compounding,
-                                integer,
-                            );
+                            overflow += if fixed_linear {
+                                insert_linear_fixed(
+                                    vals,
+                                    accs,
+                                    [nx, ny],
+                                    (k_lo, k_hi),
+                                    e,
+                                    options.compounding,
+                                )
+                            } else {
+                                insert_linear(
+                                    vals,
+                                    accs,
+                                    [nx, ny],
+                                    (k_lo, k_hi),
+                                    e,
+                                    options.compounding,
+                                    integer,
+                                )
+                            };
                         }
                         overflow
                     })
@@ -454,6 +467,121 @@ fn insert_linear<T: Store>(
         }
         *acc = if a < ACC_MAX as f64 {
             plus_round(a) as u16
+        } else {
+            ACC_MAX as u16
+        };
+    }
+    overflow
+}
+
+/// PLUS's fixed-point product (`fixed::fast_multiply`): rounded, 14 fractional bits.
+#[inline]
+fn fixed_mul(a: i64, b: i64) -> i64 {
+    (a * b + FIXED_ONE / 2) >> 14
+}
+
+/// PLUS's fixed-point rounding to an integer (`fixed::round`).
+#[inline]
+fn fixed_round(a: i64) -> i64 {
+    (a + FIXED_ONE / 2) >> 14
+}
+
+/// One trilinear insertion with PLUS's `Optimization="FULL"` arithmetic for integer data: the
+/// fraction, the corner weights, the running mean and the accumulation all in 14-bit fixed point.
+/// Same contract as [`insert_linear`].
+fn insert_linear_fixed<T: Store>(
+    vals: &mut [T],
+    accs: &mut [u16],
+    [nx, ny]: [usize; 2],
+    (k_lo, k_hi): (usize, usize),
+    e: &LinearEntry,
+    compounding: Compounding,
+) -> u64 {
+    // Positions were computed as exact multiples of 2^-14.
+    let p = e.position.map(|x| (x * FIXED_ONE as f64) as i64);
+    let fl = p.map(|x| x >> 14);
+    let fr = [
+        p[0] - (fl[0] << 14),
+        p[1] - (fl[1] << 14),
+        p[2] - (fl[2] << 14),
+    ];
+    let i0 = fl.map(|x| x as usize);
+    let i1 = [
+        i0[0] + usize::from(fr[0] != 0),
+        i0[1] + usize::from(fr[1] != 0),
+        i0[2] + usize::from(fr[2] != 0),
+    ];
+    if i1[2] < k_lo || i0[2] >= k_hi {
+        return 0;
+    }
+    let (fx, fy, fz) = (fr[0], fr[1], fr[2]);
+    let (rx, ry, rz) = (FIXED_ONE - fx, FIXED_ONE - fy, FIXED_ONE - fz);
+    let (ryrz, ryfz, fyrz, fyfz) = (
+        fixed_mul(ry, rz),
+        fixed_mul(ry, fz),
+        fixed_mul(fy, rz),
+        fixed_mul(fy, fz),
+    );
+    let weights = [
+        fixed_mul(rx, ryrz),
+        fixed_mul(rx, ryfz),
+        fixed_mul(rx, fyrz),
+        fixed_mul(rx, fyfz),
+        fixed_mul(fx, ryrz),
+        fixed_mul(fx, ryfz),
+        fixed_mul(fx, fyrz),
+        fixed_mul(fx, fyfz),
+    ];
+    let input = e.value as i64;
+    let unit = ACC_UNIT as i64;
+    let min_weight = FIXED_ONE / 8;
+    let mut overflow = 0;
+    for j in (0..8).rev() {
+        let f = weights[j];
+        if f == 0 {
+            continue;
+        }
+        let i = if j & 4 != 0 { i1[0] } else { i0[0] };
+        let jj = if j & 2 != 0 { i1[1] } else { i0[1] };
+        let k = if j & 1 != 0 { i1[2] } else { i0[2] };
+        if k < k_lo || k >= k_hi {
+            continue;
+        }
+        let v = ((k - k_lo) * ny + jj) * nx + i;
+        let out = &mut vals[v];
+        let acc = &mut accs[v];
+        let old_acc = *acc as i64;
+        let mut a = old_acc << 14;
+        let current = out.get() as i64;
+        match compounding {
+            Compounding::Maximum => {
+                if f >= min_weight && input > current {
+                    *out = T::put(input as f64);
+                    a = f * unit;
+                }
+            }
+            Compounding::Latest => {
+                if f >= min_weight {
+                    *out = T::put(input as f64);
+                    a = f * unit;
+                }
+            }
+            Compounding::Mean => {
+                // r = acc / 256 in fixed point is exactly acc * 64.
+                let r = old_acc * (FIXED_ONE / unit);
+                let sum = f + r;
+                let numerator = f * input + r * current;
+                let quotient =
+                    (numerator as f64 / sum as f64 * FIXED_ONE as f64).round_ties_even() as i64;
+                *out = T::put(fixed_round(quotient) as f64);
+                a = sum * unit;
+            }
+        }
+        if a > (ACC_THRESHOLD as i64) << 14 && old_acc <= ACC_THRESHOLD as i64 {
+            overflow += 1;
+        }
+        *acc = if a < (ACC_MAX as i64) << 14 {
+            fixed_round(a) as u16
         } else {
             ACC_MAX as u16
         };

@@ -249,9 +249,18 @@ fn output_does_not_depend_on_thread_count() {
         })
         .collect();
     let p = poses(&mats);
-    for interpolation in [Interpolation::NearestNeighbor, Interpolation::Linear] {
+    for (interpolation, position_arithmetic) in [
+        (
+            Interpolation::NearestNeighbor,
+            PositionArithmetic::FixedPoint14,
+        ),
+        (Interpolation::Linear, PositionArithmetic::FixedPoint14),
+        (Interpolation::NearestNeighbor, PositionArithmetic::Double),
+        (Interpolation::Linear, PositionArithmetic::Double),
+    ] {
         let opts = VoxelOptions {
             interpolation,
+            position_arithmetic,
             spacing_mm: DVec3::splat(0.3),
             hole_filling: HoleFilling::stick(9, 1),
             ..nn_mean()
