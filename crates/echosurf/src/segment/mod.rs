@@ -32,10 +32,21 @@
 //! coarser images a wider one. Each length can instead be given in mm ([`Length::Mm`]); it is converted with
 //! the pixel size of the frames' Image->World matrices (mean of the column and row spacing).
 //!
-//! Beyond the paper: an automatic initial band ([`InitialBand::Auto`]), recovery from a lost band (fewer
-//! than `min_edgels_in_band_fraction * M` edgels inside the carried band: a warning naming the frame, then
-//! automatic re-initialisation on that frame), and the clip rectangle (pixels outside it are never kept and
-//! never produce edgels).
+//! **Edgels.** "The M largest vertical gradients" is read literally on the signed derivative down the
+//! column ([`EdgePolarity::Rising`]: entering a bright echo from the probe side, where the interface
+//! facing the probe lies), after non-maximum suppression along the column, so a boundary gives one edgel
+//! per column it crosses. M defaults to 0.75 x the columns of the clip rectangle.
+//!
+//! Beyond the paper (each an option, documented on [`SegmentOptions`]): an automatic initial band
+//! ([`InitialBand::Auto`]: bright structures with a shadow below them, dilated by the in-band radius);
+//! recovery from a lost band (fewer than `min_edgels_in_band_fraction * M` edgels inside the carried band:
+//! a warning naming the frame, then automatic re-initialisation on that frame); a relative floor on edgel
+//! strength so speckle edges do not fill up the M where a boundary is in view; the clip rectangle (pixels
+//! outside it are never kept and never produce edgels), shrunk to the non-black data region of the frames.
+//!
+//! Speed: per frame one separable Gaussian, one gradient/NMS pass, two exact distance transforms (O(N),
+//! Felzenszwalb-Huttenlocher) and one lookup per pixel (squared distances are integers, so the Gaussian
+//! is a table); rows run in parallel with rayon and all buffers are reused between frames.
 
 mod filters;
 mod init;
