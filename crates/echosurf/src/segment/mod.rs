@@ -66,7 +66,9 @@ use crate::progress::Progress;
 use crate::{Error, Result};
 
 pub use filters::EdgePolarity;
-use filters::{Edgel, gaussian_taps, smooth, squared_distance_capped, strongest_column_edgels};
+use filters::{
+    Edgel, EdgelSelection, gaussian_taps, smooth, squared_distance_capped, strongest_column_edgels,
+};
 
 /// A length given in pixels of the frame or in millimetres (converted with the frames' pixel size).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -397,11 +399,13 @@ impl Propagator {
             &ws.smoothed,
             w,
             h,
-            self.edgel_count,
-            self.min_edgel_gradient,
-            self.relative_floor,
-            carried,
-            self.polarity,
+            &EdgelSelection {
+                count: self.edgel_count,
+                min_strength: self.min_edgel_gradient,
+                relative_floor: self.relative_floor,
+                reference_at_least: carried,
+                polarity: self.polarity,
+            },
             &mut ws.edgels,
         );
         ws.reference_strength = reference.max(carried);
