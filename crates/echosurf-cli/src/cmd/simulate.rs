@@ -3,7 +3,9 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use echosurf::simulate::{PhantomKind, SimulationOptions, simulate, write_preview, write_simulation};
+use echosurf::simulate::{
+    PhantomKind, SimulationOptions, simulate, write_preview, write_simulation,
+};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {

@@ -82,6 +82,17 @@ pub enum EdgePolarity {
     Both,
 }
 
+/// How edgels are chosen (see [`strongest_column_edgels`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EdgelSelection {
+    /// M.
+    pub count: usize,
+    pub min_strength: f32,
+    pub relative_floor: f32,
+    pub reference_at_least: f32,
+    pub polarity: EdgePolarity,
+}
+
 /// One edgel: a local maximum along its column of the vertical gradient magnitude.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Edgel {
@@ -92,21 +103,28 @@ pub struct Edgel {
 }
 
 /// The `count` strongest column edgels of a smoothed image: pixels whose central-difference vertical
-/// gradient (of the chosen polarity) exceeds `min_strength` and is a maximum along the column (echoes travel down the
+/// gradient (of the chosen polarity) exceeds `min_strength` and `relative_floor` times the strength of
+/// the edgel ranked at the top 5 % (or of `reference_at_least` if larger), and is a maximum along the column (echoes travel down the
 /// columns, so a boundary crosses each column once; suppressing non-maxima turns one blurred edge into one
 /// edgel per column instead of several). Ties are broken by index, so the choice is deterministic.
+/// Returns this frame's reference strength (the edgel ranked at the top 5 %).
 pub fn strongest_column_edgels(
     smoothed: &[f32],
     width: usize,
     height: usize,
-    count: usize,
-    min_strength: f32,
-    polarity: EdgePolarity,
+    selection: &EdgelSelection,
     out: &mut Vec<Edgel>,
-) {
+) -> f32 {
+    let EdgelSelection {
+        count,
+        min_strength,
+        relative_floor,
+        reference_at_least,
+        polarity,
+    } = *selection;
     out.clear();
     if height < 5 || width == 0 || count == 0 {
-        return;
+        return 0.0;
     }
     let grad = |u: usize, v: usize| -> f32 {
         let g = 0.5 * (smoothed[(v + 1) * width + u] - smoothed[(v - 1) * width + u]);
@@ -144,7 +162,18 @@ pub fn strongest_column_edgels(
         out.select_nth_unstable_by(count - 1, order);
         out.truncate(count);
     }
+    let mut reference = 0.0f32;
+    if !out.is_empty() {
+        // Robust maximum: the strength ranked at the top 5 % of the kept edgels.
+        out.sort_unstable_by(order);
+        reference = out[out.len() / 20].strength;
+        if relative_floor > 0.0 {
+            let floor = relative_floor * reference.max(reference_at_least);
+            out.retain(|e| e.strength >= floor);
+        }
+    }
     out.sort_unstable_by_key(|e| e.index);
+    reference
 }
 
 /// Squared Euclidean distance (in px^2, exact integers) from every pixel to the nearest seed, computed
@@ -301,6 +330,16 @@ mod tests {
         assert!(out[15 * w + 15] > out[15 * w + 16]);
     }
 
+    fn sel(count: usize, polarity: EdgePolarity) -> EdgelSelection {
+        EdgelSelection {
+            count,
+            min_strength: 0.0,
+            relative_floor: 0.0,
+            reference_at_least: 0.0,
+            polarity,
+        }
+    }
+
     #[test]
     fn edgels_sit_on_a_horizontal_step_one_per_column() {
         let (w, h) = (12, 20);
@@ -311,17 +350,17 @@ mod tests {
         let mut s = Vec::new();
         smooth(&img, w, h, &gaussian_taps(1.5), &mut tmp, &mut s);
         let mut edgels = Vec::new();
-        strongest_column_edgels(&s, w, h, 100, 0.0, EdgePolarity::Rising, &mut edgels);
+        strongest_column_edgels(&s, w, h, &sel(100, EdgePolarity::Rising), &mut edgels);
         assert_eq!(edgels.len(), w);
         for e in &edgels {
             let v = e.index as usize / w;
             assert!(v == 9 || v == 10, "edgel at row {v}");
         }
-        strongest_column_edgels(&s, w, h, 5, 0.0, EdgePolarity::Rising, &mut edgels);
+        strongest_column_edgels(&s, w, h, &sel(5, EdgePolarity::Rising), &mut edgels);
         assert_eq!(edgels.len(), 5);
-        strongest_column_edgels(&s, w, h, 100, 0.0, EdgePolarity::Falling, &mut edgels);
+        strongest_column_edgels(&s, w, h, &sel(100, EdgePolarity::Falling), &mut edgels);
         assert!(edgels.is_empty());
-        strongest_column_edgels(&s, w, h, 100, 0.0, EdgePolarity::Both, &mut edgels);
+        strongest_column_edgels(&s, w, h, &sel(100, EdgePolarity::Both), &mut edgels);
         assert_eq!(edgels.len(), w);
     }
 }

@@ -32,10 +32,21 @@
 //! coarser images a wider one. Each length can instead be given in mm ([`Length::Mm`]); it is converted with
 //! the pixel size of the frames' Image->World matrices (mean of the column and row spacing).
 //!
-//! Beyond the paper: an automatic initial band ([`InitialBand::Auto`]), recovery from a lost band (fewer
-//! than `min_edgels_in_band_fraction * M` edgels inside the carried band: a warning naming the frame, then
-//! automatic re-initialisation on that frame), and the clip rectangle (pixels outside it are never kept and
-//! never produce edgels).
+//! **Edgels.** "The M largest vertical gradients" is read literally on the signed derivative down the
+//! column ([`EdgePolarity::Rising`]: entering a bright echo from the probe side, where the interface
+//! facing the probe lies), after non-maximum suppression along the column, so a boundary gives one edgel
+//! per column it crosses. M defaults to 0.75 x the columns of the clip rectangle.
+//!
+//! Beyond the paper (each an option, documented on [`SegmentOptions`]): an automatic initial band
+//! ([`InitialBand::Auto`]: bright structures with a shadow below them, dilated by the in-band radius);
+//! recovery from a lost band (fewer than `min_edgels_in_band_fraction * M` edgels inside the carried band:
+//! a warning naming the frame, then automatic re-initialisation on that frame); a relative floor on edgel
+//! strength so speckle edges do not fill up the M where a boundary is in view; the clip rectangle (pixels
+//! outside it are never kept and never produce edgels), shrunk to the non-black data region of the frames.
+//!
+//! Speed: per frame one separable Gaussian, one gradient/NMS pass, two exact distance transforms (O(N),
+//! Felzenszwalb-Huttenlocher) and one lookup per pixel (squared distances are integers, so the Gaussian
+//! is a table); rows run in parallel with rayon and all buffers are reused between frames.
 
 mod filters;
 mod init;
@@ -55,7 +66,9 @@ use crate::progress::Progress;
 use crate::{Error, Result};
 
 pub use filters::EdgePolarity;
-use filters::{Edgel, gaussian_taps, smooth, squared_distance_capped, strongest_column_edgels};
+use filters::{
+    Edgel, EdgelSelection, gaussian_taps, smooth, squared_distance_capped, strongest_column_edgels,
+};
 
 /// A length given in pixels of the frame or in millimetres (converted with the frames' pixel size).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -94,6 +107,13 @@ pub struct SegmentOptions {
     /// one edgel per column crossing of a boundary; `Both` also counts the echo's far side, which halves
     /// how many columns M edgels cover.
     pub edgel_polarity: EdgePolarity,
+    /// Beyond the paper: of the M edgels, drop those weaker than this fraction of the strongest (the edgel
+    /// ranked at the top 5 %, or 0.8^k times the strongest seen k frames earlier in the sweep, whichever
+    /// is larger, so a boundary fading out of view does not hand the band over to speckle). Where a
+    /// boundary is in view, speckle edges are much weaker than its echo
+    /// and would otherwise fill the rest of the M, spread blobs over the whole band and keep it alive
+    /// (the band then percolates through speckle). 0 = the paper's plain M largest. Default 0.35.
+    pub min_edgel_relative_strength: f64,
     /// Edgels need a vertical gradient above this (grey levels per pixel); 0 keeps any non-flat pixel.
     pub min_edgel_gradient: f64,
     /// Prior inside the carried band, C1 = 1.0.
@@ -133,6 +153,7 @@ impl Default for SegmentOptions {
             edgel_count: None,
             edgel_polarity: EdgePolarity::Rising,
             min_edgel_gradient: 0.0,
+            min_edgel_relative_strength: 0.35,
             prior_inside: 1.0,
             prior_outside: 0.2,
             likelihood_sigma: Length::Px(15.0),
@@ -185,6 +206,10 @@ impl SegmentOptions {
         }
         for (name, x) in [
             ("min_edgel_gradient", self.min_edgel_gradient),
+            (
+                "min_edgel_relative_strength",
+                self.min_edgel_relative_strength,
+            ),
             ("prior_inside", self.prior_inside),
             ("prior_outside", self.prior_outside),
             ("threshold", self.threshold),
@@ -323,6 +348,9 @@ struct Workspace {
     dist_outside: Vec<f32>,
     labels: Vec<u32>,
     stack: Vec<u32>,
+    /// Echo strength of the boundary seen so far in this sweep, decaying per frame (see
+    /// `min_edgel_relative_strength`); reset when the band is (re-)initialised.
+    reference_strength: f32,
 }
 
 /// The paper's step on one (clipped) frame: pixel-unit parameters and the proximity lookup table.
@@ -334,6 +362,8 @@ struct Propagator {
     auto_taps: Vec<f32>,
     edgel_count: usize,
     min_edgel_gradient: f32,
+    relative_floor: f32,
+    reference_decay: f32,
     polarity: EdgePolarity,
     min_edgels_in_band: usize,
     prior_inside: f32,
@@ -364,15 +394,21 @@ impl Propagator {
     fn step(&self, ws: &mut Workspace, prior_band: &[bool], band_out: &mut Vec<bool>) -> usize {
         use rayon::prelude::*;
         let (w, h) = (self.width, self.height);
-        strongest_column_edgels(
+        let carried = ws.reference_strength * self.reference_decay;
+        let reference = strongest_column_edgels(
             &ws.smoothed,
             w,
             h,
-            self.edgel_count,
-            self.min_edgel_gradient,
-            self.polarity,
+            &EdgelSelection {
+                count: self.edgel_count,
+                min_strength: self.min_edgel_gradient,
+                relative_floor: self.relative_floor,
+                reference_at_least: carried,
+                polarity: self.polarity,
+            },
             &mut ws.edgels,
         );
+        ws.reference_strength = reference.max(carried);
         let inside = ws
             .edgels
             .iter()
@@ -621,6 +657,8 @@ pub fn segment_sequence(
         edgel_count,
         min_edgel_gradient: options.min_edgel_gradient as f32,
         polarity: options.edgel_polarity,
+        relative_floor: options.min_edgel_relative_strength as f32,
+        reference_decay: 0.8,
         min_edgels_in_band: ((options.min_edgels_in_band_fraction * edgel_count as f64).ceil()
             as usize)
             .max(1),
@@ -669,6 +707,7 @@ pub fn segment_sequence(
             }
             let mut needs_auto = false;
             if k == 0 {
+                ws.reference_strength = 0.0;
                 initialised_frames.push(frame);
                 match &init_crop {
                     Some(b) => prior.clone_from(b),
@@ -684,6 +723,7 @@ pub fn segment_sequence(
                         ws.edgels.len()
                     ));
                     initialised_frames.push(frame);
+                    ws.reference_strength = 0.0;
                     needs_auto = true;
                 }
             }

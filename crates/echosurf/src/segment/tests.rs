@@ -431,3 +431,44 @@ fn preview_montage_is_written() {
         (2 * 120 + 12, 2 * 90 + 12)
     );
 }
+
+#[test]
+fn black_margins_of_the_frame_grab_are_not_data() {
+    // A scanner frame grab: image data in the middle, exact zeros around it (the PLUS spine data).
+    let mut s = synthetic_sweep(200, 150, 3, 0.15, 0.0, 8);
+    let (w, h) = (200usize, 150usize);
+    let PixelData::U8(px) = &mut s.sequence.pixels else {
+        unreachable!()
+    };
+    for f in 0..3 {
+        for v in 0..h {
+            for u in 0..w {
+                if !(30..170).contains(&u) || v < 12 {
+                    px[f * w * h + v * w + u] = 0;
+                }
+            }
+        }
+    }
+    let masks = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Auto,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    for f in 0..3 {
+        for v in 0..h {
+            for u in 0..w {
+                if !(30..170).contains(&u) || v < 12 {
+                    assert_eq!(masks.masks[f][v * w + u], 0, "frame {f} ({u}, {v})");
+                }
+            }
+        }
+    }
+    // The boundary inside the data region is still kept.
+    let u = 100;
+    let b = s.boundary_row(1, u as f64).round() as usize;
+    assert_eq!(masks.masks[1][b * w + u], 255);
+}
