@@ -87,7 +87,10 @@ fn homogeneous_speckle_envelope_is_rayleigh() {
     // Rayleigh: sqrt(pi / (4 - pi)) = 1.913. ~40k correlated pixels, ~3k speckle cells: the estimate's
     // sampling error is ~1-2 %, so the required 10 % is a test of the model, not of luck.
     let rayleigh = (std::f64::consts::PI / (4.0 - std::f64::consts::PI)).sqrt();
-    assert!((snr / rayleigh - 1.0).abs() < 0.10, "SNR {snr} vs {rayleigh}");
+    assert!(
+        (snr / rayleigh - 1.0).abs() < 0.10,
+        "SNR {snr} vs {rayleigh}"
+    );
     // Background level near the paper's 15.
     let grey = mean(frame.grey.iter().map(|&g| g as f64));
     assert!((10.0..=22.0).contains(&grey), "water grey {grey}");
@@ -161,7 +164,10 @@ fn strong_reflector_shadows_what_lies_below() {
             .flat_map(|v| (113..143).map(move |u| (v, u)))
             .map(|(v, u)| frame.grey[v * W + u] as f64),
     );
-    assert!(below_default < beside && below_default > below, "{below_default}");
+    assert!(
+        below_default < beside && below_default > below,
+        "{below_default}"
+    );
 }
 
 fn small_options(phantom: PhantomKind) -> SimulationOptions {
@@ -187,7 +193,10 @@ fn files_read_back_with_the_project_readers() {
     assert_eq!((seq.width, seq.height, seq.frames.len()), (96, 80, 12));
     assert_eq!(seq.pixels, sim.sequence.pixels);
     for (a, b) in seq.frames.iter().zip(&sim.sequence.frames) {
-        let (ma, mb) = (a.transforms["ProbeToTracker"], b.transforms["ProbeToTracker"]);
+        let (ma, mb) = (
+            a.transforms["ProbeToTracker"],
+            b.transforms["ProbeToTracker"],
+        );
         assert!(ma.valid);
         assert!(ma.matrix.abs_diff_eq(mb.matrix, 1e-9));
         assert_eq!(a.timestamp_s, b.timestamp_s);
@@ -204,7 +213,13 @@ fn files_read_back_with_the_project_readers() {
     );
     assert_eq!(files.truth.len(), 3);
     let truth = read_mesh(&files.truth[0]).unwrap();
-    assert_eq!(truth.triangles.len(), sim.truth.iter().map(|(_, m)| m.triangles.len()).sum::<usize>());
+    assert_eq!(
+        truth.triangles.len(),
+        sim.truth
+            .iter()
+            .map(|(_, m)| m.triangles.len())
+            .sum::<usize>()
+    );
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(&files.description).unwrap()).unwrap();
     assert_eq!(json["seed"], 1);
@@ -222,7 +237,10 @@ fn truth_surfaces_are_closed_manifolds_on_the_phantom() {
         assert_eq!(truth.len(), if kind == PhantomKind::Duck { 2 } else { 1 });
         for (name, mesh) in &truth {
             let topology = mesh.topology();
-            assert!(topology.is_closed_manifold(), "{kind:?} {name}: {topology:?}");
+            assert!(
+                topology.is_closed_manifold(),
+                "{kind:?} {name}: {topology:?}"
+            );
             assert_eq!(topology.components, 1, "{kind:?} {name}");
             // Vertices lie on the zero level (the surfacer projects them with Newton steps).
             for v in mesh.vertices.iter().step_by(97) {
@@ -272,9 +290,21 @@ fn duck_sweep_has_the_papers_levels() {
     let sim = simulate_sweeps(&options, &NoProgress).unwrap();
     assert_eq!(sim.sweeps.len(), 3);
     // Paper: background ~15, boundary ~130, iso 50.
-    assert!((10.0..=22.0).contains(&sim.background_level), "{}", sim.background_level);
-    assert!((110.0..=150.0).contains(&sim.boundary_level), "{}", sim.boundary_level);
-    assert!((40.0..=60.0).contains(&sim.suggested_iso), "{}", sim.suggested_iso);
+    assert!(
+        (10.0..=22.0).contains(&sim.background_level),
+        "{}",
+        sim.background_level
+    );
+    assert!(
+        (110.0..=150.0).contains(&sim.boundary_level),
+        "{}",
+        sim.boundary_level
+    );
+    assert!(
+        (40.0..=60.0).contains(&sim.suggested_iso),
+        "{}",
+        sim.suggested_iso
+    );
 }
 
 #[test]

@@ -257,7 +257,10 @@ impl FrameFormer<'_> {
         let sum_lateral: f32 = kernel_lateral.iter().sum();
         let kernel_lateral: Vec<f32> = kernel_lateral.iter().map(|k| k / sum_lateral).collect();
         // Scale diffuse scatterers so the RMS after both kernels is the material's level.
-        let energy: f64 = kernel_axial.iter().map(|k| (*k as f64).powi(2)).sum::<f64>()
+        let energy: f64 = kernel_axial
+            .iter()
+            .map(|k| (*k as f64).powi(2))
+            .sum::<f64>()
             * kernel_lateral
                 .iter()
                 .map(|k| (*k as f64).powi(2))
@@ -283,8 +286,9 @@ impl FrameFormer<'_> {
         let amp_diffuse = db_to_amplitude(ac.diffuse_db);
         let atten = |m: &Material| {
             // Round trip over one axial pitch, as an amplitude factor.
-            10f64.powf(-2.0 * m.attenuation_db_per_cm_mhz * ac.frequency_mhz * pitch_axial / 10.0 / 20.0)
-                as f32
+            10f64.powf(
+                -2.0 * m.attenuation_db_per_cm_mhz * ac.frequency_mhz * pitch_axial / 10.0 / 20.0,
+            ) as f32
         };
         let atten_water = atten(&ac.water);
         let atten_object = atten(&ac.object);
@@ -294,7 +298,10 @@ impl FrameFormer<'_> {
         let point = |u: isize, v: isize| origin + ex * u as f64 + ey * v as f64;
         // Near the surface the per-pixel work is needed within the axial PSF reach and the interface tent.
         let band_mm = 4.0 * sigma_axial_mm + 2.0 * pitch_axial;
-        let block_radius_mm = 0.5 * ((ex + ey) * BLOCK as f64).length().max(((ex - ey) * BLOCK as f64).length());
+        let block_radius_mm = 0.5
+            * ((ex + ey) * BLOCK as f64)
+                .length()
+                .max(((ex - ey) * BLOCK as f64).length());
         // The ellipsoid estimate and blends can exceed slope 1 slightly: 1.5 is a safe Lipschitz bound.
         let safe = 1.5 * block_radius_mm + band_mm;
 
@@ -363,8 +370,9 @@ impl FrameFormer<'_> {
                             let tent = (1.0 - along.abs() / pitch_axial).max(0.0);
                             t *= (1.0 - ac.interface_loss * tent) as f32;
                             if along.abs() < 4.0 * sigma_axial_mm {
-                                let envelope =
-                                    (-(along * along) / (2.0 * sigma_axial_mm * sigma_axial_mm)).exp();
+                                let envelope = (-(along * along)
+                                    / (2.0 * sigma_axial_mm * sigma_axial_mm))
+                                    .exp();
                                 let surface_point = p - normal * perpendicular;
                                 let (rr, ri) = cell_gaussian(surface_point, inv_grain, salt_rough);
                                 let (dr, di) =
@@ -391,9 +399,9 @@ impl FrameFormer<'_> {
         let mut transmitted = vec![1f32; ew];
         for v in 0..eh {
             let row = v * ew;
-            for u in 0..ew {
+            for (u, column) in transmitted.iter_mut().enumerate() {
                 let i = row + u;
-                let t = transmitted[u];
+                let t = *column;
                 scat_re[i] *= t;
                 scat_im[i] *= t;
                 face_re[i] *= t;
@@ -401,7 +409,7 @@ impl FrameFormer<'_> {
                 if t < 0.8 {
                     class[i] = CLASS_NONE;
                 }
-                transmitted[u] = t * trans[i];
+                *column = t * trans[i];
             }
         }
 

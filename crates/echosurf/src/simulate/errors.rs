@@ -105,7 +105,11 @@ mod tests {
         let n = 4000;
         let mut sum_sq = 0.0;
         for _ in 0..n {
-            sum_sq += errors.tracker_noise(&mut rng).w_axis.truncate().length_squared();
+            sum_sq += errors
+                .tracker_noise(&mut rng)
+                .w_axis
+                .truncate()
+                .length_squared();
         }
         // E|t|^2 = 3 sigma^2; 4000 draws give the RMS to ~1.2 % (1 sigma), so allow 5 %.
         let rms_per_axis = (sum_sq / (3.0 * n as f64)).sqrt();

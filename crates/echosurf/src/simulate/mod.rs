@@ -108,7 +108,8 @@ impl SimulationOptions {
                 self.pixel_size_mm
             ));
         }
-        if !(self.truth_resolution_mm.is_finite() && (0.05..=10.0).contains(&self.truth_resolution_mm))
+        if !(self.truth_resolution_mm.is_finite()
+            && (0.05..=10.0).contains(&self.truth_resolution_mm))
         {
             return bad(format!(
                 "truth resolution must be in [0.05, 10] mm (got {})",
@@ -249,7 +250,8 @@ fn simulate_sweeps_with(
     let image_to_probe = true_image_to_probe(width, pitch);
     let (_, cal_rotation, _) = image_to_probe.to_scale_rotation_translation();
     let cal_rotation = DMat3::from_quat(cal_rotation);
-    let face_in_probe = image_to_probe.transform_point3(DVec3::new(0.5 * (width as f64 - 1.0), 0.0, 0.0));
+    let face_in_probe =
+        image_to_probe.transform_point3(DVec3::new(0.5 * (width as f64 - 1.0), 0.0, 0.0));
     let mut object_rng = ChaCha8Rng::seed_from_u64(stream_seed(options.seed, STREAM_OBJECT, 0));
     let object_motion =
         sweep::ObjectMotion::new(&mut object_rng, options.motion.object_motion_mm, time_s);
@@ -316,7 +318,8 @@ fn simulate_sweeps_with(
     let mut tracked = Vec::with_capacity(n);
     for (i, (frame, placement)) in frames.iter().zip(&placements).enumerate() {
         pixels.extend_from_slice(&frame.grey);
-        let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(options.seed, STREAM_TRACKER, i as u64));
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(stream_seed(options.seed, STREAM_TRACKER, i as u64));
         let recorded = probe_to_tracker[i] * options.errors.tracker_noise(&mut rng);
         let mut tf = TrackedFrame {
             timestamp_s: Some(round_time(placement.time_s)),

@@ -67,7 +67,9 @@ pub fn truth_meshes(
 /// All truth surfaces in one mesh.
 pub fn merged_truth(truth: &[(String, Mesh)]) -> Mesh {
     let mut all = Mesh::default();
-    let with_normals = truth.iter().all(|(_, m)| m.normals.len() == m.vertices.len());
+    let with_normals = truth
+        .iter()
+        .all(|(_, m)| m.normals.len() == m.vertices.len());
     for (_, m) in truth {
         let offset = all.vertices.len() as u32;
         all.vertices.extend_from_slice(&m.vertices);

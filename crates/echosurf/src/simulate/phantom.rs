@@ -395,7 +395,11 @@ pub fn hand() -> Sdf {
     let mut sdf = palm;
     for (y, length, radius, splay) in fingers {
         let a = DVec3::new(34.0, y, 1.0);
-        let dir = DVec3::new(f64::cos(splay.to_radians()), f64::sin(splay.to_radians()), -0.05);
+        let dir = DVec3::new(
+            f64::cos(splay.to_radians()),
+            f64::sin(splay.to_radians()),
+            -0.05,
+        );
         sdf = sdf.union(
             Sdf::Capsule {
                 a,
@@ -454,9 +458,8 @@ pub fn phantom_sdf(kind: &PhantomKind) -> Result<impl Fn(DVec3) -> f64 + Send + 
 
 fn mesh_phantom(path: &Path) -> Result<MeshSdf> {
     let mesh = crate::io::read_mesh(path)?;
-    MeshSdf::new(mesh).map_err(|message| {
-        Error::format(path, crate::FormatProblem::BadValue, message)
-    })
+    MeshSdf::new(mesh)
+        .map_err(|message| Error::format(path, crate::FormatProblem::BadValue, message))
 }
 
 #[cfg(test)]

@@ -68,10 +68,16 @@ impl HandMotion {
             }
         }
         if !(self.step_shape.is_finite() && self.step_shape > 0.0) {
-            return Err(format!("step_shape must be positive (got {})", self.step_shape));
+            return Err(format!(
+                "step_shape must be positive (got {})",
+                self.step_shape
+            ));
         }
         if !(self.frame_rate_hz.is_finite() && self.frame_rate_hz > 0.0) {
-            return Err(format!("frame_rate_hz must be positive (got {})", self.frame_rate_hz));
+            return Err(format!(
+                "frame_rate_hz must be positive (got {})",
+                self.frame_rate_hz
+            ));
         }
         Ok(())
     }
@@ -214,7 +220,10 @@ pub fn sweep_placements<R: Rng>(
         positions.push(acc);
     }
     let total = if acc > 0.0 { acc } else { 1.0 };
-    let xs: Vec<f64> = positions.iter().map(|s| x0 + (x1 - x0) * s / total).collect();
+    let xs: Vec<f64> = positions
+        .iter()
+        .map(|s| x0 + (x1 - x0) * s / total)
+        .collect();
 
     let tilt = SlowWobble::new(rng, motion.wobble_deg);
     let roll = SlowWobble::new(rng, motion.wobble_deg);
@@ -300,8 +309,8 @@ pub fn sweep_placements<R: Rng>(
         let phase = std::f64::consts::TAU * tremor_hz * time_s;
         // Tremor: a sinusoid per axis (aliased by the frame rate, as on a real scanner) plus 30 % jitter.
         let shake = |k: usize, g: f64| (phase + tremor_phase[k]).sin() + 0.3 * g;
-        let tremor_t = DVec3::new(shake(0, gauss()), shake(1, gauss()), shake(2, gauss()))
-            * motion.tremor_mm;
+        let tremor_t =
+            DVec3::new(shake(0, gauss()), shake(1, gauss()), shake(2, gauss())) * motion.tremor_mm;
         let tremor_r = DVec3::new(shake(3, gauss()), shake(4, gauss()), shake(5, gauss()))
             * motion.tremor_deg.to_radians();
         let rotation = DMat3::from_euler(glam::EulerRot::XYZ, tremor_r.x, tremor_r.y, tremor_r.z)
@@ -411,8 +420,8 @@ mod tests {
             }
             // Irregular spacing: the steps vary (gamma shape 4 has a coefficient of variation of 0.5).
             let mean = steps.iter().sum::<f64>() / steps.len() as f64;
-            let sd = (steps.iter().map(|s| (s - mean).powi(2)).sum::<f64>() / steps.len() as f64)
-                .sqrt();
+            let sd =
+                (steps.iter().map(|s| (s - mean).powi(2)).sum::<f64>() / steps.len() as f64).sqrt();
             assert!(sd / mean > 0.2, "steps too regular: {mean} +- {sd}");
         }
     }

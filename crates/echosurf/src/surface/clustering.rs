@@ -64,7 +64,10 @@ impl Work {
         let mut into = Vec::with_capacity(8);
         for &f in &self.vertex_faces[x as usize] {
             let t = self.faces[f as usize];
-            let i = t.iter().position(|&v| v == x).expect("face lists its vertex");
+            let i = t
+                .iter()
+                .position(|&v| v == x)
+                .expect("face lists its vertex");
             let (p, q) = (t[(i + 1) % 3], t[(i + 2) % 3]);
             verts.push(p);
             verts.push(q);
@@ -144,7 +147,13 @@ impl Work {
                 if t.contains(&u) && t.contains(&v) {
                     continue;
                 }
-                let after = t.map(|w| if w == u || w == v { new_position } else { self.position(w) });
+                let after = t.map(|w| {
+                    if w == u || w == v {
+                        new_position
+                    } else {
+                        self.position(w)
+                    }
+                });
                 let n_after = (after[1] - after[0]).cross(after[2] - after[0]);
                 if n_after.dot(mean_normal) <= 0.0 || n_after.length_squared() <= self.min_area2 {
                     return false;
@@ -301,7 +310,10 @@ mod tests {
         assert_eq!(c.triangles.len(), 4);
         assert!(c.refused_merges > 0);
         let t = topo(&c);
-        assert!(t.is_closed_manifold() && t.euler_characteristic == 2, "{t:?}");
+        assert!(
+            t.is_closed_manifold() && t.euler_characteristic == 2,
+            "{t:?}"
+        );
     }
 
     /// Two sheets through one cluster cell, joined by a strip elsewhere: merging across would pinch.
@@ -339,7 +351,11 @@ mod tests {
         ];
         let triangles = vec![[0, 1, 2], [1, 3, 2]];
         let c = cluster_vertices(&positions, &[0, 5, 5, 1], &triangles, 1.0);
-        assert_eq!(c.triangles.len(), 2, "contracting 1-2 would leave two triangles sharing only a vertex");
+        assert_eq!(
+            c.triangles.len(),
+            2,
+            "contracting 1-2 would leave two triangles sharing only a vertex"
+        );
         assert_eq!(c.refused_merges, 1);
         assert!(topo(&c).is_oriented_manifold());
     }

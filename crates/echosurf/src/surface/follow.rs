@@ -9,9 +9,9 @@
 
 use glam::DVec3;
 
+use super::ScalarField;
 use super::lattice::{EvalCounter, Ijk, KeyMap, KeySet, Lattice, add, corner_offset, pack, unpack};
 use super::trust::TrustRegion;
-use super::ScalarField;
 use crate::Result;
 
 /// Cached lattice values: a dense array for the full grid, a hash map when following the surface.
@@ -284,8 +284,10 @@ fn near_visited(centre: Ijk, r: i32, visited: &KeySet) -> bool {
         for dy in -r..=r {
             for dx in -r..=r {
                 let c = add(centre, [dx, dy, dz]);
-                if c.iter().all(|&x| (0..1 << super::lattice::AXIS_BITS).contains(&x))
-                    && visited.contains(&pack(c)) {
+                if c.iter()
+                    .all(|&x| (0..1 << super::lattice::AXIS_BITS).contains(&x))
+                    && visited.contains(&pack(c))
+                {
                     return true;
                 }
             }

@@ -122,8 +122,7 @@ impl Lattice {
 
     #[inline]
     pub fn cell_centre(&self, c: Ijk) -> DVec3 {
-        self.origin_mm
-            + (DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64) + 0.5) * self.spacing_mm
+        self.origin_mm + (DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64) + 0.5) * self.spacing_mm
     }
 
     #[inline]

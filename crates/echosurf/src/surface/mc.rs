@@ -149,7 +149,9 @@ pub(crate) fn marching_cubes(
         )));
     }
     if !level.is_finite() {
-        return Err(Error::InvalidInput(format!("marching cubes: level {level} is not finite")));
+        return Err(Error::InvalidInput(format!(
+            "marching cubes: level {level} is not finite"
+        )));
     }
     let mut mesh = Mesh::default();
     if dims.iter().any(|&d| d < 2) {
@@ -185,7 +187,8 @@ pub(crate) fn marching_cubes(
                         if vertex_of_edge[e] == u32::MAX {
                             let (a, b) = EDGES[e];
                             let (ax, ay, az) = corner(a);
-                            let key = (index(ax, ay, az) as u64) << 2 | (b - a).trailing_zeros() as u64;
+                            let key =
+                                (index(ax, ay, az) as u64) << 2 | (b - a).trailing_zeros() as u64;
                             vertex_of_edge[e] = *edge_vertex.entry(key).or_insert_with(|| {
                                 let (va, vb) = (value(a), value(b));
                                 let t = ((level - va) / (vb - va))
@@ -194,7 +197,8 @@ pub(crate) fn marching_cubes(
                                 let (bx, by, bz) = corner(b);
                                 let pa = DVec3::new(ax as f64, ay as f64, az as f64);
                                 let pb = DVec3::new(bx as f64, by as f64, bz as f64);
-                                mesh.vertices.push(origin_mm + (pa + (pb - pa) * t) * spacing_mm);
+                                mesh.vertices
+                                    .push(origin_mm + (pa + (pb - pa) * t) * spacing_mm);
                                 gradients.push(
                                     central_gradient(values, dims, (ax, ay, az), (bx, by, bz), t)
                                         / spacing_mm,
@@ -221,7 +225,12 @@ pub(crate) fn marching_cubes(
     mesh.normals = gradients
         .iter()
         .zip(&face_normals)
-        .map(|(g, f)| (-*g).try_normalize().or(f.try_normalize()).unwrap_or(DVec3::Z))
+        .map(|(g, f)| {
+            (-*g)
+                .try_normalize()
+                .or(f.try_normalize())
+                .unwrap_or(DVec3::Z)
+        })
         .collect();
     Ok(mesh)
 }

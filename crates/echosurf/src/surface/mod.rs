@@ -11,9 +11,9 @@ mod follow;
 mod lattice;
 mod mc;
 mod rmt;
-mod trust;
 #[cfg(test)]
 mod tests;
+mod trust;
 
 use glam::DVec3;
 
@@ -161,7 +161,11 @@ pub fn extract_surfaces_with_stats(
     options: &SurfaceOptions,
 ) -> Result<(Vec<Mesh>, SurfaceStats)> {
     validate(levels, options)?;
-    let lattice = lattice::Lattice::new(domain.bounds_min_mm, domain.bounds_max_mm, options.resolution_mm)?;
+    let lattice = lattice::Lattice::new(
+        domain.bounds_min_mm,
+        domain.bounds_max_mm,
+        options.resolution_mm,
+    )?;
     let trust = trust::TrustRegion::new(&domain.trust_points, options.trust_distance_mm);
     let mut counter = lattice::EvalCounter::default();
     let crossed = if domain.seeds.is_empty() {
@@ -184,9 +188,12 @@ pub fn extract_surfaces_with_stats(
     };
     let mut meshes = Vec::with_capacity(levels.len());
     for (&level, cells) in levels.iter().zip(&crossed.per_level) {
-        let raw = rmt::march_tetrahedra(&lattice, cells, level, options.cluster_cell_factor, |n| crossed.nodes.get(n));
+        let raw = rmt::march_tetrahedra(&lattice, cells, level, options.cluster_cell_factor, |n| {
+            crossed.nodes.get(n)
+        });
         let h = lattice.spacing_mm;
-        let merged = clustering::cluster_vertices(&raw.positions, &raw.cluster_keys, &raw.triangles, h * h);
+        let merged =
+            clustering::cluster_vertices(&raw.positions, &raw.cluster_keys, &raw.triangles, h * h);
         let mut level_stats = LevelStats {
             level,
             crossed_cells: cells.len(),
@@ -234,7 +241,9 @@ fn validate(levels: &[f64], options: &SurfaceOptions) -> Result<()> {
             options.trust_distance_mm
         )));
     }
-    if !(options.cluster_cell_factor.is_finite() && (0.5..=4.0).contains(&options.cluster_cell_factor)) {
+    if !(options.cluster_cell_factor.is_finite()
+        && (0.5..=4.0).contains(&options.cluster_cell_factor))
+    {
         return Err(Error::InvalidInput(format!(
             "cluster cell factor must lie in 0.5..=4, got {}",
             options.cluster_cell_factor
@@ -294,7 +303,11 @@ fn project_onto_surface(
             }
             let step = -residual * g / g2;
             let len = step.length();
-            positions[i as usize] += if len > spacing_mm { step * (spacing_mm / len) } else { step };
+            positions[i as usize] += if len > spacing_mm {
+                step * (spacing_mm / len)
+            } else {
+                step
+            };
             still.push(i);
         }
         pending = still;

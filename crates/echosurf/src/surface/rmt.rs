@@ -10,7 +10,7 @@
 
 use glam::DVec3;
 
-use super::lattice::{KeyMap, Ijk, Lattice, add, corner_offset, pack};
+use super::lattice::{Ijk, KeyMap, Lattice, add, corner_offset, pack};
 
 /// The Kuhn tetrahedra as cube-corner bitmasks along a monotone path 0 -> 7.
 pub(crate) const KUHN_TETS: [[usize; 4]; 6] = [
@@ -151,8 +151,16 @@ pub(crate) fn march_tetrahedra(
                     let (a, b, c, d) = (highs[0], highs[1], lows[0], lows[1]);
                     let quad = [(a, c), (a, d), (b, d), (b, c)];
                     let ids = quad.map(|(x, y)| vertex(x, y));
-                    emit([quad[0], quad[1], quad[2]], &mut raw.triangles, [ids[0], ids[1], ids[2]]);
-                    emit([quad[0], quad[2], quad[3]], &mut raw.triangles, [ids[0], ids[2], ids[3]]);
+                    emit(
+                        [quad[0], quad[1], quad[2]],
+                        &mut raw.triangles,
+                        [ids[0], ids[1], ids[2]],
+                    );
+                    emit(
+                        [quad[0], quad[2], quad[3]],
+                        &mut raw.triangles,
+                        [ids[0], ids[2], ids[3]],
+                    );
                 }
             }
         }
@@ -200,7 +208,11 @@ mod tests {
                 assert_eq!(w[0] & w[1], w[0], "edge {w:?} is not monotone");
                 assert_eq!((w[1] - w[0]).count_ones(), 1);
             }
-            volume += (p(t[1]) - p(t[0])).cross(p(t[2]) - p(t[0])).dot(p(t[3]) - p(t[0])).abs() / 6.0;
+            volume += (p(t[1]) - p(t[0]))
+                .cross(p(t[2]) - p(t[0]))
+                .dot(p(t[3]) - p(t[0]))
+                .abs()
+                / 6.0;
         }
         assert!((volume - 1.0).abs() < 1e-12);
     }

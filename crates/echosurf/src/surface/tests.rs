@@ -82,7 +82,11 @@ fn faces_agree_with_normals(mesh: &Mesh) -> usize {
 }
 
 /// The same lattice the surfacer uses for `domain`, sampled for marching cubes.
-fn marching_cubes_on_lattice(f: impl Fn(DVec3) -> (f64, DVec3), domain: &SurfaceDomain, h: f64) -> Mesh {
+fn marching_cubes_on_lattice(
+    f: impl Fn(DVec3) -> (f64, DVec3),
+    domain: &SurfaceDomain,
+    h: f64,
+) -> Mesh {
     let l = lattice::Lattice::new(domain.bounds_min_mm, domain.bounds_max_mm, h).unwrap();
     let dims = l.cells.map(|c| c as usize + 1);
     let mut values = Vec::new();
@@ -115,12 +119,18 @@ fn sphere_is_accurate_closed_and_better_shaped_than_marching_cubes() {
     assert_eq!(topo.components, 1);
     assert_eq!(mesh.normals.len(), mesh.vertices.len());
     for (v, n) in mesh.vertices.iter().zip(&mesh.normals) {
-        assert!(n.dot((*v - CENTRE).normalize()) > 0.999, "normal {n} at {v} is not outward");
+        assert!(
+            n.dot((*v - CENTRE).normalize()) > 0.999,
+            "normal {n} at {v} is not outward"
+        );
     }
 
     let mc = marching_cubes_on_lattice(sphere(CENTRE, radius), &d, 0.5);
     let mc_topo = mc.topology();
-    assert!(mc_topo.is_closed_manifold() && mc_topo.euler_characteristic == 2, "{mc_topo:?}");
+    assert!(
+        mc_topo.is_closed_manifold() && mc_topo.euler_characteristic == 2,
+        "{mc_topo:?}"
+    );
     assert_eq!(faces_agree_with_normals(&mc), 0);
     let ratio = mesh.triangles.len() as f64 / mc.triangles.len() as f64;
     let (rmt_angles, mc_angles) = (angle_stats(mesh), angle_stats(&mc));
@@ -134,7 +144,11 @@ fn sphere_is_accurate_closed_and_better_shaped_than_marching_cubes() {
         stats.lattice_nodes_evaluated,
     );
     println!("min-angle RMT {rmt_angles:?}\nmin-angle MC  {mc_angles:?}");
-    assert_eq!(faces_agree_with_normals(mesh), 0, "winding disagrees with normals");
+    assert_eq!(
+        faces_agree_with_normals(mesh),
+        0,
+        "winding disagrees with normals"
+    );
     assert!(ratio <= 0.55, "triangle ratio {ratio}");
     assert!(rmt_angles.mean > mc_angles.mean);
     assert!(rmt_angles.below_10 < mc_angles.below_10);
@@ -199,7 +213,10 @@ fn surface_following_matches_the_full_grid_with_far_fewer_evaluations() {
     };
     let (followed, stats) = extract(sphere(CENTRE, radius), &[0.0], &followed_domain);
     assert_eq!(followed[0].triangles.len(), full[0].triangles.len());
-    assert_eq!(followed[0], full[0], "same cells, same order: identical meshes");
+    assert_eq!(
+        followed[0], full[0],
+        "same cells, same order: identical meshes"
+    );
     println!(
         "lattice nodes evaluated: following {} vs full grid {}; evaluations per triangle {:.2}",
         stats.lattice_nodes_evaluated,
@@ -237,7 +254,13 @@ fn trust_region_clips_a_sheet_far_from_the_data() {
         for j in 0..20 {
             let (phi, theta) = (i as f64 * 0.157, (j as f64 + 0.5) * 0.157);
             trust_points.push(
-                CENTRE + 4.0 * DVec3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()),
+                CENTRE
+                    + 4.0
+                        * DVec3::new(
+                            theta.sin() * phi.cos(),
+                            theta.sin() * phi.sin(),
+                            theta.cos(),
+                        ),
             );
         }
     }
@@ -254,7 +277,11 @@ fn several_levels_give_one_mesh_each() {
     assert_eq!(meshes.len(), 2);
     for (mesh, radius) in meshes.iter().zip([8.0, 5.0]) {
         assert_closed(&mesh.topology(), 2, 1);
-        let r: f64 = mesh.vertices.iter().map(|v| (*v - CENTRE).length()).sum::<f64>()
+        let r: f64 = mesh
+            .vertices
+            .iter()
+            .map(|v| (*v - CENTRE).length())
+            .sum::<f64>()
             / mesh.vertices.len() as f64;
         assert!((r - radius).abs() < 0.01, "{r}");
     }
@@ -284,10 +311,22 @@ fn bad_parameters_are_errors() {
     let ok = SurfaceOptions::default();
     assert!(extract_surfaces(&f, &[f64::NAN], &d, &ok).is_err());
     for bad in [
-        SurfaceOptions { resolution_mm: -1.0, ..ok.clone() },
-        SurfaceOptions { trust_distance_mm: 0.0, ..ok.clone() },
-        SurfaceOptions { cluster_cell_factor: 0.0, ..ok.clone() },
-        SurfaceOptions { surface_tolerance_mm: f64::INFINITY, ..ok.clone() },
+        SurfaceOptions {
+            resolution_mm: -1.0,
+            ..ok.clone()
+        },
+        SurfaceOptions {
+            trust_distance_mm: 0.0,
+            ..ok.clone()
+        },
+        SurfaceOptions {
+            cluster_cell_factor: 0.0,
+            ..ok.clone()
+        },
+        SurfaceOptions {
+            surface_tolerance_mm: f64::INFINITY,
+            ..ok.clone()
+        },
     ] {
         assert!(extract_surfaces(&f, &[0.0], &d, &bad).is_err(), "{bad:?}");
     }

@@ -25,7 +25,9 @@ impl TrustRegion {
         if finite.is_empty() {
             return None;
         }
-        let origin_mm = finite.iter().fold(DVec3::splat(f64::INFINITY), |a, p| a.min(*p));
+        let origin_mm = finite
+            .iter()
+            .fold(DVec3::splat(f64::INFINITY), |a, p| a.min(*p));
         let mut region = TrustRegion {
             radius_mm,
             origin_mm,
@@ -37,7 +39,10 @@ impl TrustRegion {
             .iter()
             .map(|&p| (region.key(region.bucket(p)), p))
             .collect();
-        keyed.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.to_array().partial_cmp(&b.1.to_array()).unwrap()));
+        keyed.sort_by(|a, b| {
+            a.0.cmp(&b.0)
+                .then(a.1.to_array().partial_cmp(&b.1.to_array()).unwrap())
+        });
         for (i, (k, p)) in keyed.iter().enumerate() {
             if region.bucket_keys.last() != Some(k) {
                 region.bucket_keys.push(*k);
@@ -75,8 +80,12 @@ impl TrustRegion {
                         continue;
                     }
                     if let Ok(i) = self.bucket_keys.binary_search(&self.key(n)) {
-                        let range = self.bucket_starts[i] as usize..self.bucket_starts[i + 1] as usize;
-                        if self.points[range].iter().any(|t| t.distance_squared(p) <= r2) {
+                        let range =
+                            self.bucket_starts[i] as usize..self.bucket_starts[i + 1] as usize;
+                        if self.points[range]
+                            .iter()
+                            .any(|t| t.distance_squared(p) <= r2)
+                        {
                             return true;
                         }
                     }
