@@ -172,7 +172,7 @@ pub fn write_preview(path: &Path, sim: &Simulation, count: usize) -> Result<()> 
     }
     // Evenly inside each sweep (its first and last frames are usually past the object's ends).
     let sweeps: Vec<std::ops::Range<usize>> = if sim.sweeps.is_empty() {
-        vec![0..n]
+        std::iter::once(0..n).collect()
     } else {
         sim.sweeps.clone()
     };
