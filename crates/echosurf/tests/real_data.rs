@@ -452,3 +452,88 @@ fn nwire_clip_corners_span_the_plus_reconstruction() {
     );
     assert_eq!(((hi - lo) / 0.5).floor() + 1.0, dims, "max {hi}");
 }
+
+/// Every truncation and many random byte corruptions of small valid files (MetaImage zlib and plain,
+/// NRRD gz): the readers return Ok or Err, never panic. Seeded, so failures reproduce.
+#[test]
+fn mangled_files_never_panic() {
+    use rand::{Rng, SeedableRng};
+    let dir = tempfile::tempdir().unwrap();
+    // A small 8 x 6 x 3 sweep with PLUS-like per-frame fields keeps the loop fast.
+    let frames = (0..3)
+        .map(|i| {
+            let mut f = echosurf::io::TrackedFrame {
+                timestamp_s: Some(345.6 + i as f64 * 0.08),
+                image_valid: true,
+                ..Default::default()
+            };
+            for (name, valid) in [("ProbeToTracker", true), ("ReferenceToTracker", i != 1)] {
+                f.transforms.insert(
+                    name.into(),
+                    echosurf::io::FrameTransform {
+                        matrix: glam::DMat4::from_rotation_z(0.1 * i as f64)
+                            * glam::DMat4::from_translation(DVec3::new(-190.9, -98.1, -1949.1)),
+                        valid,
+                    },
+                );
+            }
+            f
+        })
+        .collect();
+    let seq = echosurf::io::TrackedSequence {
+        width: 8,
+        height: 6,
+        channels: 1,
+        orientation: "MF".into(),
+        frames,
+        pixels: PixelData::U8((0..144).map(|v| (v * 7 % 256) as u8).collect()),
+        header: Default::default(),
+    };
+    let mut originals = Vec::new();
+    for compress in [true, false] {
+        let p = dir.path().join(format!("small{compress}.mha"));
+        write_sequence(&p, &seq, compress).unwrap();
+        originals.push(("mha", std::fs::read(&p).unwrap()));
+    }
+    let nrrd_header = "NRRD0004\ndimension: 3\ntype: uint8\nsizes: 4 2 2\nencoding: gz\n\
+        ultrasound image orientation:=MN\nSeq_Frame0001_ProbeToTrackerTransform:=1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n\n";
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    std::io::Write::write_all(&mut gz, &[9u8; 16]).unwrap();
+    let mut nrrd = nrrd_header.as_bytes().to_vec();
+    nrrd.extend_from_slice(&gz.finish().unwrap());
+    assert!(
+        io::nrrd::read_sequence(&{
+            let p = dir.path().join("ok.nrrd");
+            std::fs::write(&p, &nrrd).unwrap();
+            p
+        })
+        .is_ok()
+    );
+    originals.push(("nrrd", nrrd));
+
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(20261125);
+    for (ext, original) in &originals {
+        // A fresh name per attempt: rewriting one file in place is ~10x slower on overlay file systems.
+        let mut count = 0usize;
+        let mut attempt = |bytes: &[u8]| {
+            count += 1;
+            let p = dir.path().join(format!("mangled{count}.{ext}"));
+            std::fs::write(&p, bytes).unwrap();
+            let result = std::panic::catch_unwind(|| read_sequence(&p));
+            assert!(result.is_ok(), "panic on mangled {ext}");
+        };
+        // Every cut in the binary tail, a sample of cuts in the header (each read costs a file write).
+        let tail = original.len().saturating_sub(160);
+        for len in (0..tail).step_by(7).chain(tail..original.len()) {
+            attempt(&original[..len]);
+        }
+        for _ in 0..400 {
+            let mut bytes = original.clone();
+            for _ in 0..rng.random_range(1..4) {
+                let i = rng.random_range(0..bytes.len());
+                bytes[i] = rng.random();
+            }
+            attempt(&bytes);
+        }
+    }
+}

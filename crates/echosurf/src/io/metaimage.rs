@@ -70,6 +70,13 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
     let mut line_number = 0usize;
     while let Some(line) = read_header_line(&mut reader, path, &mut consumed)? {
         line_number += 1;
+        if line_number == 1 && !(line.starts_with(b"ObjectType") || line.starts_with(b"NDims")) {
+            return Err(Error::format(
+                path,
+                FormatProblem::Unsupported,
+                "not a MetaImage file (first line is neither ObjectType nor NDims)",
+            ));
+        }
         let text = line_to_str(&line, path)?;
         if text.trim().is_empty() {
             continue;
@@ -94,13 +101,6 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
         };
         let key = key.trim();
         let value = value.trim();
-        if line_number == 1 && key != "ObjectType" && key != "NDims" {
-            return Err(Error::format(
-                path,
-                FormatProblem::Unsupported,
-                "not a MetaImage file (first line is neither ObjectType nor NDims)",
-            ));
-        }
         if let Some((index, name)) = split_frame_key(key) {
             frame_fields.push(index, name, value);
         } else if key == "ElementDataFile" {
@@ -531,7 +531,14 @@ fn sequence_header_text(
             sequence.pixels.element_type().metaimage_name()
         },
     )?;
-    line("Kinds", &get("Kinds", "domain domain list"))?;
+    // NDims is always 3 here, so a kept Kinds of another length (from a 2D file) is replaced.
+    let kinds = get("Kinds", "domain domain list");
+    let kinds = if kinds.split_ascii_whitespace().count() == 3 {
+        kinds
+    } else {
+        "domain domain list".to_string()
+    };
+    line("Kinds", &kinds)?;
     line("Offset", &get("Offset", "0 0 0"))?;
     line(
         "TransformMatrix",
@@ -633,6 +640,90 @@ mod tests {
         let s = read_sequence(&p).unwrap();
         assert_eq!(s.channels, 2);
         assert_eq!(s.pixels, PixelData::I8(vec![-1, 4, 1, 2]));
+    }
+
+    #[test]
+    fn reads_mhd_with_zraw_and_big_endian_float() {
+        use std::io::Write as _;
+        let dir = tempfile::tempdir().unwrap();
+        let values = [0.5f32, -1.25, 3.0, 1e-3, 7.0, -0.0];
+        let raw: Vec<u8> = values.iter().flat_map(|v| v.to_be_bytes()).collect();
+        let mut enc = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+        enc.write_all(&raw).unwrap();
+        let z = enc.finish().unwrap();
+        std::fs::write(dir.path().join("img.zraw"), &z).unwrap();
+        let header = format!(
+            "ObjectType = Image\nNDims = 3\nDimSize = 3 1 2\nElementType = MET_FLOAT\n\
+             ElementByteOrderMSB = True\nCompressedData = True\nCompressedDataSize = {}\n\
+             ElementDataFile = img.zraw\n",
+            z.len()
+        );
+        let p = write_file(dir.path(), "img.mhd", &header, &[]);
+        let s = read_sequence(&p).unwrap();
+        assert_eq!(s.pixels, PixelData::F32(values.to_vec()));
+        assert_eq!(s.frames.len(), 2);
+        // A CompressedDataSize larger than the data file is a truncated file.
+        let lying = header.replace(
+            &format!("CompressedDataSize = {}", z.len()),
+            &format!("CompressedDataSize = {}", z.len() + 10),
+        );
+        let p = write_file(dir.path(), "lying.mhd", &lying, &[]);
+        let e = read_sequence(&p).unwrap_err();
+        assert_eq!(e.problem(), Some(FormatProblem::Truncated));
+        assert!(e.to_string().contains("img.zraw"));
+    }
+
+    #[test]
+    fn header_errors_are_typed() {
+        let dir = tempfile::tempdir().unwrap();
+        let cases = [
+            (
+                "ObjectType = Image\nNDims = 3\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n",
+                FormatProblem::MissingField,
+            ),
+            (
+                "ObjectType = Image\nNDims = 3\nDimSize = 1 2\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n",
+                FormatProblem::BadValue,
+            ),
+            (
+                "ObjectType = Image\nNDims = 4\nDimSize = 1 2 3 4\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n",
+                FormatProblem::Unsupported,
+            ),
+            (
+                "ObjectType = Image\nNDims = 3\nDimSize = 2 2 1\nElementType = MET_DOUBLE\nElementDataFile = LOCAL\n",
+                FormatProblem::Unsupported,
+            ),
+            (
+                "ObjectType = Image\nNDims = 3\nDimSize = 2 -2 1\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n",
+                FormatProblem::BadValue,
+            ),
+            (
+                "ObjectType = Image\nNDims = 3\nDimSize = 2 2 1\nElementType = MET_UCHAR\nCompressedData = maybe\nElementDataFile = LOCAL\n",
+                FormatProblem::BadValue,
+            ),
+            (
+                "ObjectType = Image\nNDims = 3\nDimSize = 2 2 1\nElementType = MET_UCHAR\nUltrasoundImageOrientation = QQ\nElementDataFile = LOCAL\n",
+                FormatProblem::BadValue,
+            ),
+            (
+                "ObjectType = Image\nNDims = 3\nDimSize = 2 2 1\nElementType = MET_UCHAR\nElementDataFile = LIST\n",
+                FormatProblem::Unsupported,
+            ),
+            (
+                "ObjectType = Mesh\nNDims = 3\nDimSize = 2 2 1\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n",
+                FormatProblem::Unsupported,
+            ),
+            ("\u{89}PNG\n", FormatProblem::Unsupported),
+        ];
+        for (i, (header, problem)) in cases.iter().enumerate() {
+            let p = write_file(dir.path(), &format!("h{i}.mha"), header, &[1, 2, 3, 4]);
+            let e = read_sequence(&p).unwrap_err();
+            assert_eq!(e.problem(), Some(*problem), "case {i}: {e}");
+            assert!(
+                e.to_string().contains(&format!("h{i}.mha")),
+                "case {i}: {e}"
+            );
+        }
     }
 
     #[test]

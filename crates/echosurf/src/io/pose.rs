@@ -522,6 +522,32 @@ mod tests {
     }
 
     #[test]
+    fn clip_corners_follow_plus() {
+        let clip = ClipRect {
+            origin_px: [167, 62],
+            size_px: [495, 488],
+        };
+        assert_eq!(
+            clip_corners_px(820, 616, &clip),
+            Some([167.0, 62.0, 662.0, 550.0])
+        );
+        let whole = ClipRect {
+            origin_px: [0, 0],
+            size_px: [820, 616],
+        };
+        assert_eq!(
+            clip_corners_px(820, 616, &whole),
+            Some([0.0, 0.0, 819.0, 615.0])
+        );
+        let outside = ClipRect {
+            origin_px: [900, 0],
+            size_px: [10, 10],
+        };
+        assert_eq!(clip_corners_px(820, 616, &outside), None);
+        assert_eq!(clip_corners_px(0, 0, &whole), None);
+    }
+
+    #[test]
     fn sweeps_break_on_jump_and_pause() {
         let cal = Calibration::from_image_to_probe(DMat4::IDENTITY);
         let xs = [0.0, 1.0, 2.0, 10.0, 11.0, 12.0];

@@ -18,6 +18,8 @@ pub(crate) const MAX_HEADER_BYTES: u64 = 256 << 20;
 /// Deflate cannot compress better than about 1032:1, so a stream of `n` bytes inflates to at most
 /// `1032 * n` bytes; a header promising more than that is lying and is rejected before allocating.
 const MAX_DEFLATE_RATIO: u64 = 1032;
+/// Largest decompression buffer allocated before data arrives (a full 820 x 616 x 201 sweep is 100 MB).
+const MAX_UPFRONT_BYTES: usize = 256 << 20;
 
 /// How the pixel block is stored after the header.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -173,77 +175,67 @@ pub(crate) fn read_pixel_block<R: Read>(
                 ));
             }
             let limited = reader.take(stream_len);
-            let mut buf = vec![0u8; expected_usize];
             match compression {
                 Compression::Zlib => {
-                    inflate_exact(flate2::read::ZlibDecoder::new(limited), &mut buf, path)?
+                    inflate_exact(flate2::read::ZlibDecoder::new(limited), expected, path)
                 }
-                _ => inflate_exact(flate2::read::MultiGzDecoder::new(limited), &mut buf, path)?,
+                _ => inflate_exact(flate2::read::MultiGzDecoder::new(limited), expected, path),
             }
-            Ok(buf)
         }
     }
 }
 
-/// Fills `buf` from a decoder and checks the stream ends exactly there.
-fn inflate_exact<D: Read>(mut decoder: D, buf: &mut [u8], path: &Path) -> Result<()> {
-    let corrupt = |e: std::io::Error| {
-        Error::format(
-            path,
-            FormatProblem::Corrupt,
-            format!("compressed pixel data does not decode: {e}"),
-        )
-    };
-    let mut filled = 0;
-    while filled < buf.len() {
-        match decoder.read(&mut buf[filled..]) {
-            Ok(0) => {
-                return Err(Error::format(
-                    path,
-                    FormatProblem::Truncated,
-                    format!(
-                        "compressed stream holds {filled} bytes of pixel data, header promises {}",
-                        buf.len()
-                    ),
-                ));
-            }
-            Ok(n) => filled += n,
-            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-            Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => {
-                return Err(Error::format(
-                    path,
-                    FormatProblem::Truncated,
-                    format!("compressed stream ends early after {filled} bytes"),
-                ));
-            }
-            Err(e) => return Err(corrupt(e)),
-        }
-    }
-    let mut probe = [0u8; 1];
+/// Decompresses exactly `expected` bytes and checks the stream ends there. The buffer is allocated up
+/// front (one copy-free pass) up to [`MAX_UPFRONT_BYTES`]; beyond that it grows only as real data
+/// arrives, so a header that lies about the size cannot make us allocate what the stream does not hold.
+fn inflate_exact<D: Read>(decoder: D, expected: u64, path: &Path) -> Result<Vec<u8>> {
+    let upfront = usize::try_from(expected)
+        .unwrap_or(usize::MAX)
+        .min(MAX_UPFRONT_BYTES);
+    let mut buf = Vec::with_capacity(upfront);
+    // One byte more than promised, to notice a stream that holds more.
+    let mut limited = decoder.take(expected.saturating_add(1));
     loop {
-        match decoder.read(&mut probe) {
-            Ok(0) => return Ok(()),
-            Ok(_) => {
-                return Err(Error::format(
-                    path,
-                    FormatProblem::SizeMismatch,
-                    format!(
-                        "compressed stream holds more than the {} bytes the header promises",
-                        buf.len()
-                    ),
-                ));
-            }
-            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+        match limited.read_to_end(&mut buf) {
+            Ok(_) => break,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
             Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => {
                 return Err(Error::format(
                     path,
                     FormatProblem::Truncated,
-                    "compressed stream ends without its end marker",
+                    format!(
+                        "compressed stream ends early after {} of {expected} bytes",
+                        buf.len()
+                    ),
                 ));
             }
-            Err(e) => return Err(corrupt(e)),
+            Err(e) => {
+                return Err(Error::format(
+                    path,
+                    FormatProblem::Corrupt,
+                    format!("compressed pixel data does not decode: {e}"),
+                ));
+            }
         }
     }
+    let got = buf.len() as u64;
+    if got < expected {
+        return Err(Error::format(
+            path,
+            FormatProblem::Truncated,
+            format!(
+                "compressed stream holds {got} bytes of pixel data, header promises {expected}"
+            ),
+        ));
+    }
+    if got > expected {
+        return Err(Error::format(
+            path,
+            FormatProblem::SizeMismatch,
+            format!("compressed stream holds more than the {expected} bytes the header promises"),
+        ));
+    }
+    Ok(buf)
 }
 
 /// Flips to apply to bring an image of the given `UltrasoundImageOrientation` to MF:

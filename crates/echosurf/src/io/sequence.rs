@@ -115,7 +115,8 @@ pub struct TrackedSequence {
     /// `UltrasoundImageOrientation` as read (e.g. `"MFA"`); the pixels have already been brought to MF.
     pub orientation: String,
     pub frames: Vec<TrackedFrame>,
-    /// `width * height * channels * frames.len()` values, or empty for a tracking-only sequence.
+    /// `width * height * channels * frames.len()` values, or empty for a tracking-only sequence (whose
+    /// `width` / `height` stay what the file said, often 0 or 1; the writer marks it `MET_OTHER`).
     pub pixels: PixelData,
     /// Global header fields not otherwise represented, kept for round-tripping (e.g.
     /// `UltrasoundImageType`).

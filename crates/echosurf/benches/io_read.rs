@@ -1,0 +1,54 @@
+//! Reading the real PLUS sweeps (zlib MetaImage and gzip NRRD) and resolving their poses.
+
+use std::path::{Path, PathBuf};
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use echosurf::io::{self, ReferenceChoice};
+
+fn real(name: &str) -> PathBuf {
+    let beside = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/data/real/"
+    ));
+    if beside.is_dir() {
+        return beside.join(name);
+    }
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .ancestors()
+        .map(|a| a.join("shared/data/real"))
+        .find(|p| p.is_dir())
+        .unwrap_or_else(|| beside.to_path_buf())
+        .join(name)
+}
+
+fn bench_read(c: &mut Criterion) {
+    let mut group = c.benchmark_group("io");
+    group.sample_size(10);
+    for name in [
+        "SpinePhantomFreehand.igs.mha",
+        "NwirePhantomFreehand.igs.nrrd",
+    ] {
+        let path = real(name);
+        group.bench_function(format!("read {name}"), |b| {
+            b.iter(|| io::read_sequence(&path).expect("read"))
+        });
+    }
+    let seq_path = real("SpinePhantomFreehand.igs.mha");
+    let seq = io::read_sequence(&seq_path).expect("read");
+    let cal = io::read_calibration(&real(
+        "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml",
+    ))
+    .expect("calibration");
+    group.bench_function("resolve_poses spine", |b| {
+        b.iter(|| io::resolve_poses(&seq, Some(&cal), ReferenceChoice::Auto, &seq_path).unwrap())
+    });
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("spine.mha");
+    group.bench_function("write spine zlib", |b| {
+        b.iter(|| io::write_sequence(&out, &seq, true).unwrap())
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_read);
+criterion_main!(benches);
