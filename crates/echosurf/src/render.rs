@@ -159,6 +159,19 @@ pub fn render_views(mesh: &Mesh, options: &RenderOptions) -> Result<RgbImage> {
     let columns = if options.views.len() == 1 { 1 } else { 2 };
     let rows = options.views.len().div_ceil(columns) as u32;
     let tile = options.size_px / columns as u32;
+    // Each rendering thread holds (tile * supersample)^2 pixels of ~40 bytes (colour and depth, twice
+    // with a ghost): cap that at 4096^2 (~670 MB), and the finished picture at 64 M pixels.
+    let rendered = tile as u64 * options.supersample as u64;
+    let picture = tile as u64 * columns as u64 * tile as u64 * rows as u64;
+    if rendered > 4096 || picture > 1 << 26 {
+        return Err(Error::ResourceLimit(format!(
+            "a {}-pixel picture of {} views at supersample {} is too large to render; \
+             use a smaller size or supersample (tile x supersample <= 4096)",
+            options.size_px,
+            options.views.len(),
+            options.supersample
+        )));
+    }
     let scene = Scene::new(mesh, options);
     let tiles: Vec<Vec<u8>> = options
         .views
@@ -810,6 +823,11 @@ mod tests {
             },
             RenderOptions {
                 supersample: 9,
+                ..small()
+            },
+            RenderOptions {
+                size_px: 8192,
+                supersample: 4,
                 ..small()
             },
             RenderOptions {

@@ -78,7 +78,8 @@ fn check_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
             mesh.vertices.len()
         ));
     }
-    if u32::try_from(mesh.vertices.len()).is_err() || u32::try_from(mesh.triangles.len()).is_err() {
+    // PLY indices are written as `int`, STL counts triangles in a u32.
+    if i32::try_from(mesh.vertices.len()).is_err() || u32::try_from(mesh.triangles.len()).is_err() {
         return bad("mesh too large for the mesh file formats".into());
     }
     if let Some(i) = mesh.vertices.iter().position(|v| !v.is_finite()) {
@@ -819,6 +820,72 @@ mod tests {
             Err(Error::InvalidInput(_))
         ));
         assert!(!path.exists());
+    }
+
+    #[test]
+    fn mutated_files_never_panic() {
+        use rand::{Rng, SeedableRng};
+        let dir = tempfile::tempdir().unwrap();
+        let mut originals = Vec::new();
+        for name in ["m.ply", "m.stl", "m.obj"] {
+            let path = dir.path().join(name);
+            write_mesh(&path, &octahedron()).unwrap();
+            originals.push((name, std::fs::read(&path).unwrap()));
+        }
+        originals.push((
+            "a.ply",
+            b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n\
+0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+                .to_vec(),
+        ));
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let path = Path::new("fuzz");
+        for (name, original) in &originals {
+            for _ in 0..400 {
+                let mut bytes = original.clone();
+                match rng.random_range(0..3) {
+                    0 => bytes.truncate(rng.random_range(0..bytes.len())),
+                    1 => {
+                        for _ in 0..rng.random_range(1..4) {
+                            let i = rng.random_range(0..bytes.len());
+                            bytes[i] = rng.random();
+                        }
+                    }
+                    _ => {
+                        // Digits and header words are where parsers go wrong: overwrite with some.
+                        let i = rng.random_range(0..bytes.len());
+                        let junk: &[u8] = [&b"9999999999"[..], b"-1", b"\xff\xff\xff\x7f", b"nan"]
+                            [rng.random_range(0..4)];
+                        for (k, &b) in junk.iter().enumerate() {
+                            if let Some(x) = bytes.get_mut(i + k) {
+                                *x = b;
+                            }
+                        }
+                    }
+                }
+                // A format error, or a mesh that is safe to use; any panic fails the test.
+                let result = match name.rsplit('.').next() {
+                    Some("ply") => parse_ply_mesh(path, &bytes),
+                    Some("stl") => parse_stl(path, &bytes),
+                    _ => parse_obj(path, &bytes),
+                };
+                match result {
+                    Ok(m) => {
+                        assert!(m.vertices.iter().all(|v| v.is_finite()));
+                        assert!(
+                            m.triangles
+                                .iter()
+                                .flatten()
+                                .all(|&i| (i as usize) < m.vertices.len())
+                        );
+                        assert!(m.normals.is_empty() || m.normals.len() == m.vertices.len());
+                    }
+                    Err(e) => assert!(e.problem().is_some(), "{e}"),
+                }
+                let _ = crate::io::ply::PlyFile::parse(path, &bytes);
+            }
+        }
     }
 
     #[test]
