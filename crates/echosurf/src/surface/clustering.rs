@@ -1,9 +1,9 @@
 //! Vertex clustering ("regularisation") that keeps the mesh an oriented 2-manifold.
 //!
-//! Every raw vertex belongs to the clustering cell of the lattice node nearest to it along its edge (the
-//! cells are the lattice cubes shifted by half a spacing). Within a cell, vertices are merged by
-//! contracting mesh edges joining two of them, one edge at a time, in a fixed order. **The rule**: an edge
-//! `uv` is contracted only if
+//! Every raw vertex belongs to one clustering cell (see `rmt::cluster_key`: Voronoi cells of a
+//! face-centred cubic lattice slightly coarser than the sampling lattice). Within a cell, vertices are
+//! merged by contracting mesh edges joining two of them, one edge at a time, in a fixed order.
+//! **The rule**: an edge `uv` is contracted only if
 //!
 //! 1. it satisfies the *link condition* (Dey, Edelsbrunner et al. 1999):
 //!    `Lk(u) ∩ Lk(v) = Lk(uv)`, where links are taken after coning the boundary to a virtual vertex ω
@@ -35,6 +35,30 @@ pub(crate) struct ClusteredSurface {
 
 const OMEGA: u32 = u32::MAX;
 
+#[derive(Default)]
+struct Link {
+    verts: Vec<u32>,
+    edges: Vec<(u32, u32)>,
+    out_of: Vec<u32>,
+    into: Vec<u32>,
+}
+
+impl Link {
+    fn clear(&mut self) {
+        self.verts.clear();
+        self.edges.clear();
+        self.out_of.clear();
+        self.into.clear();
+    }
+}
+
+#[derive(Default)]
+struct Scratch {
+    edge_link: Vec<u32>,
+    lu: Link,
+    lv: Link,
+}
+
 struct Work {
     pos_sum: Vec<DVec3>,
     weight: Vec<f64>,
@@ -55,13 +79,10 @@ impl Work {
             .any(|&f| self.faces[f as usize].contains(&b))
     }
 
-    /// Vertex part (sorted neighbours, plus ω if on the boundary) and edge part (sorted pairs) of Lk(x).
-    fn link(&self, x: u32) -> (Vec<u32>, Vec<(u32, u32)>) {
-        let mut verts = Vec::with_capacity(12);
-        let mut edges = Vec::with_capacity(12);
-        // Directed edges out of and into x: a boundary edge appears in one direction only.
-        let mut out_of = Vec::with_capacity(8);
-        let mut into = Vec::with_capacity(8);
+    /// Vertex part (sorted neighbours, plus ω if on the boundary) and edge part (sorted pairs) of Lk(x),
+    /// into `out` (buffers reused across calls: this runs for every candidate merge).
+    fn link(&self, x: u32, out: &mut Link) {
+        out.clear();
         for &f in &self.vertex_faces[x as usize] {
             let t = self.faces[f as usize];
             let i = t
@@ -69,39 +90,40 @@ impl Work {
                 .position(|&v| v == x)
                 .expect("face lists its vertex");
             let (p, q) = (t[(i + 1) % 3], t[(i + 2) % 3]);
-            verts.push(p);
-            verts.push(q);
-            edges.push((p.min(q), p.max(q)));
-            out_of.push(p);
-            into.push(q);
+            out.verts.push(p);
+            out.verts.push(q);
+            out.edges.push((p.min(q), p.max(q)));
+            // Directed edges out of and into x: a boundary edge appears in one direction only.
+            out.out_of.push(p);
+            out.into.push(q);
         }
-        out_of.sort_unstable();
-        into.sort_unstable();
+        out.out_of.sort_unstable();
+        out.into.sort_unstable();
         let mut boundary = false;
-        for &p in &out_of {
-            if into.binary_search(&p).is_err() {
+        for &p in &out.out_of {
+            if out.into.binary_search(&p).is_err() {
                 boundary = true;
-                edges.push((p, OMEGA));
+                out.edges.push((p, OMEGA));
             }
         }
-        for &q in &into {
-            if out_of.binary_search(&q).is_err() {
+        for &q in &out.into {
+            if out.out_of.binary_search(&q).is_err() {
                 boundary = true;
-                edges.push((q, OMEGA));
+                out.edges.push((q, OMEGA));
             }
         }
         if boundary {
-            verts.push(OMEGA);
+            out.verts.push(OMEGA);
         }
-        verts.sort_unstable();
-        verts.dedup();
-        edges.sort_unstable();
-        edges.dedup();
-        (verts, edges)
+        out.verts.sort_unstable();
+        out.verts.dedup();
+        out.edges.sort_unstable();
+        out.edges.dedup();
     }
 
-    fn link_condition(&self, u: u32, v: u32) -> bool {
-        let mut edge_link: Vec<u32> = Vec::with_capacity(3);
+    fn link_condition(&self, u: u32, v: u32, scratch: &mut Scratch) -> bool {
+        let edge_link = &mut scratch.edge_link;
+        edge_link.clear();
         let mut uses = 0;
         for &f in &self.vertex_faces[u as usize] {
             let t = self.faces[f as usize];
@@ -117,17 +139,23 @@ impl Work {
             edge_link.push(OMEGA);
         }
         edge_link.sort_unstable();
-        let (vu, eu) = self.link(u);
-        let (vv, ev) = self.link(v);
-        let common: Vec<u32> = vu
+        self.link(u, &mut scratch.lu);
+        self.link(v, &mut scratch.lv);
+        let (lu, lv) = (&scratch.lu, &scratch.lv);
+        let mut common = lu
+            .verts
             .iter()
-            .copied()
-            .filter(|x| vv.binary_search(x).is_ok())
-            .collect();
-        if common != edge_link {
+            .filter(|x| lv.verts.binary_search(x).is_ok());
+        // Common neighbours must equal the apexes of the edge's triangles (both sorted).
+        for w in scratch.edge_link.iter() {
+            if common.next() != Some(w) {
+                return false;
+            }
+        }
+        if common.next().is_some() {
             return false;
         }
-        !eu.iter().any(|e| ev.binary_search(e).is_ok())
+        !lu.edges.iter().any(|e| lv.edges.binary_search(e).is_ok())
     }
 
     /// Rule 2: the surviving triangles around u and v neither fold over nor degenerate at the new
@@ -217,36 +245,42 @@ pub(crate) fn cluster_vertices(
     let mut order: Vec<u32> = (0..n as u32).collect();
     order.sort_by_key(|&v| (cluster_keys[v as usize], v));
     let mut refused = 0;
+    let mut scratch = Scratch::default();
     for group in order.chunk_by(|&a, &b| cluster_keys[a as usize] == cluster_keys[b as usize]) {
         if group.len() < 2 {
             continue;
         }
         let mut members: Vec<u32> = group.to_vec();
         let mut blocked: Vec<(u32, u32)> = Vec::new();
+        // Passes over all pairs until one merges nothing (a merge can make a refused pair acceptable
+        // or join two vertices that were not adjacent before).
         loop {
-            let mut merged = None;
-            'search: for i in 0..members.len() {
-                for j in i + 1..members.len() {
+            let mut merged_any = false;
+            let mut i = 0;
+            while i < members.len() {
+                let mut j = i + 1;
+                while j < members.len() {
                     let (u, v) = (members[i], members[j]);
-                    if !work.adjacent(u, v) {
-                        continue;
+                    if work.adjacent(u, v) {
+                        let new_position = (work.pos_sum[u as usize] + work.pos_sum[v as usize])
+                            / (work.weight[u as usize] + work.weight[v as usize]);
+                        if work.link_condition(u, v, &mut scratch)
+                            && work.keeps_shape(u, v, new_position)
+                        {
+                            work.contract(u, v);
+                            members.remove(j);
+                            merged_any = true;
+                            continue;
+                        } else if !blocked.contains(&(u, v)) {
+                            blocked.push((u, v));
+                        }
                     }
-                    let new_position = (work.pos_sum[u as usize] + work.pos_sum[v as usize])
-                        / (work.weight[u as usize] + work.weight[v as usize]);
-                    if work.link_condition(u, v) && work.keeps_shape(u, v, new_position) {
-                        work.contract(u, v);
-                        merged = Some(j);
-                        break 'search;
-                    } else if !blocked.contains(&(u, v)) {
-                        blocked.push((u, v));
-                    }
+                    j += 1;
                 }
+                i += 1;
             }
-            match merged {
-                Some(j) => {
-                    members.remove(j);
-                }
-                None => break,
+            if !merged_any {
+                break;
             }
         }
         // A pair refused at some point but later merged through another contraction is not a refusal.

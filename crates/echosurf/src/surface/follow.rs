@@ -48,8 +48,9 @@ pub(crate) struct CrossedCells {
     pub seed_cells: usize,
 }
 
-/// Largest lattice the full-grid mode evaluates (nodes); beyond it the caller must pass seeds.
-pub(crate) const MAX_FULL_GRID_NODES: u128 = 1 << 28;
+/// Largest lattice the full-grid mode evaluates (nodes, 8 bytes each); beyond it the caller must pass
+/// seeds.
+pub(crate) const MAX_FULL_GRID_NODES: u128 = 1 << 26;
 
 #[inline]
 fn cell_corners(cell: Ijk) -> [Ijk; 8] {
@@ -81,16 +82,21 @@ pub(crate) fn full_grid(
         )));
     }
     let dims = lattice.cells.map(|c| c as usize + 1);
-    let mut points = Vec::with_capacity(node_count as usize);
-    for k in 0..dims[2] {
-        for j in 0..dims[1] {
-            for i in 0..dims[0] {
-                points.push(lattice.node_position([i as i32, j as i32, k as i32]));
+    // Evaluate in slabs of whole z-layers (about a million points each) so the point list stays small.
+    let layer = dims[0] * dims[1];
+    let layers_per_slab = (1 << 20) / layer.max(1) + 1;
+    let mut values = Vec::with_capacity(node_count as usize);
+    for k0 in (0..dims[2]).step_by(layers_per_slab) {
+        let mut points = Vec::with_capacity(layer * layers_per_slab.min(dims[2] - k0));
+        for k in k0..(k0 + layers_per_slab).min(dims[2]) {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    points.push(lattice.node_position([i as i32, j as i32, k as i32]));
+                }
             }
         }
+        values.extend(super::lattice::evaluate_values(field, &points, counter)?);
     }
-    let values = super::lattice::evaluate_values(field, &points, counter)?;
-    drop(points);
     let nodes = NodeValues::Dense { dims, values };
     let mut per_level = Vec::with_capacity(levels.len());
     for &level in levels {
@@ -166,11 +172,9 @@ impl Follower<'_> {
                 for axis in 0..3 {
                     for side in 0..2 {
                         // Corners of the face at `axis` = side.
-                        let face: Vec<f64> = (0..8)
-                            .filter(|c| (c >> axis) & 1 == side)
-                            .map(|c| v[c])
-                            .collect();
-                        let high = face.iter().filter(|&&x| x > level).count();
+                        let high = (0..8)
+                            .filter(|c| (c >> axis) & 1 == side && v[*c] > level)
+                            .count();
                         if high == 0 || high == 4 {
                             continue;
                         }
@@ -196,6 +200,7 @@ impl Follower<'_> {
 
 /// Surface-following from seed points. A seed whose own cell is not crossed looks for crossed cells at
 /// growing Chebyshev distance up to `search_radius_cells`, unless the surface was already found there.
+/// Seeds are first thinned to one per block of `search_radius_cells + 1` cells along each axis.
 pub(crate) fn follow_from_seeds(
     field: &dyn ScalarField,
     lattice: &Lattice,
@@ -212,6 +217,14 @@ pub(crate) fn follow_from_seeds(
         .collect();
     seed_cells.sort_unstable();
     seed_cells.dedup();
+    // Thin dense seeds (every sample of a sweep) to one per block of (radius + 1)^3 cells: the search
+    // around the kept seed reaches every cell of its block, so the thinning loses no crossed cell of the
+    // block, and the cost follows the blocks, not the samples. Keeps the lowest cell of each block.
+    let block = search_radius_cells as i32 + 1;
+    let block_key = |k: u64| pack(unpack(k).map(|c| c / block));
+    seed_cells.sort_unstable_by_key(|&k| (block_key(k), k));
+    seed_cells.dedup_by_key(|k| block_key(*k));
+    seed_cells.sort_unstable();
     let mut follower = Follower {
         field,
         lattice,
@@ -227,6 +240,20 @@ pub(crate) fn follow_from_seeds(
         for r in 0..=radius {
             // Seeds with the surface already found within distance r need no search.
             pending.retain(|&s| !near_visited(s, r, &visited));
+            if r == 1 && !pending.is_empty() {
+                // Before searching, drop seeds whose first-order distance to the level |s - k| / |grad s|
+                // is more than twice the search reach (twice: the estimate is only first-order).
+                let reach = 2.0 * (radius as f64 + 1.0) * 3f64.sqrt() * lattice.spacing_mm;
+                let centres: Vec<DVec3> = pending.iter().map(|&c| lattice.cell_centre(c)).collect();
+                let (values, gradients) =
+                    super::lattice::evaluate_gradients(field, &centres, follower.counter);
+                let mut k = 0;
+                pending.retain(|_| {
+                    let (v, g) = (values[k], gradients[k].length());
+                    k += 1;
+                    !(v.is_finite() && g.is_finite()) || (v - level).abs() <= reach * g
+                });
+            }
             let mut candidates: Vec<Ijk> = Vec::new();
             for &s in &pending {
                 for_each_ring_cell(s, r, |c| {

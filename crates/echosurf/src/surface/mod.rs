@@ -1,9 +1,9 @@
 //! Iso-surface extraction: regularised marching tetrahedra (surface-following) and marching cubes.
 //!
 //! The pipeline of [`extract_surfaces`] for each level: find the lattice cells the surface crosses
-//! ([`follow`]: from seeds, or a full-grid scan), clipped to the region of trust ([`trust`]); marching
-//! tetrahedra in them ([`rmt`]); merge vertices per clustering cell without breaking the manifold
-//! ([`clustering`], which documents the rule); move every vertex onto the surface with batched Newton
+//! (`follow`: from seeds, or a full-grid scan), clipped to the region of trust (`trust`); marching
+//! tetrahedra in them (`rmt`); merge vertices per clustering cell without breaking the manifold
+//! (`clustering`, which documents the rule); move every vertex onto the surface with batched Newton
 //! steps along the field gradient, and take normals from the gradient (toward lower values).
 
 mod clustering;
@@ -16,6 +16,7 @@ mod tests;
 mod trust;
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 use crate::mesh::Mesh;
 use crate::{Error, Result};
@@ -187,13 +188,28 @@ pub fn extract_surfaces_with_stats(
         ..Default::default()
     };
     let mut meshes = Vec::with_capacity(levels.len());
-    for (&level, cells) in levels.iter().zip(&crossed.per_level) {
-        let raw = rmt::march_tetrahedra(&lattice, cells, level, options.cluster_cell_factor, |n| {
-            crossed.nodes.get(n)
-        });
-        let h = lattice.spacing_mm;
-        let merged =
-            clustering::cluster_vertices(&raw.positions, &raw.cluster_keys, &raw.triangles, h * h);
+    // Marching tetrahedra and clustering are sequential per level; levels run in parallel (each result
+    // depends only on its level, so the order of completion does not matter).
+    let h = lattice.spacing_mm;
+    let merged_levels: Vec<(rmt::RawSurface, clustering::ClusteredSurface)> = levels
+        .par_iter()
+        .zip(crossed.per_level.par_iter())
+        .map(|(&level, cells)| {
+            let raw =
+                rmt::march_tetrahedra(&lattice, cells, level, options.cluster_cell_factor, |n| {
+                    crossed.nodes.get(n)
+                });
+            let merged = clustering::cluster_vertices(
+                &raw.positions,
+                &raw.cluster_keys,
+                &raw.triangles,
+                h * h,
+            );
+            (raw, merged)
+        })
+        .collect();
+    for ((&level, cells), (raw, merged)) in levels.iter().zip(&crossed.per_level).zip(merged_levels)
+    {
         let mut level_stats = LevelStats {
             level,
             crossed_cells: cells.len(),
@@ -403,7 +419,7 @@ fn finish_normals(gradient_normals: &mut [DVec3], positions: &[DVec3], triangles
 
 /// Classic marching cubes on a regular grid: `values[x + dims[0] * (y + dims[1] * z)]`, node (i, j, k) at
 /// `origin_mm + (i, j, k) * spacing_mm`; normals point toward lower values (central differences).
-/// Watertight: closed wherever the surface closes inside the grid (see [`mc`] for the face rule).
+/// Watertight: closed wherever the surface closes inside the grid (see `mc` for the face rule).
 pub fn marching_cubes(
     values: &[f32],
     dims: [usize; 3],
