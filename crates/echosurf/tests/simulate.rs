@@ -343,3 +343,30 @@ fn mesh_phantom_from_file_uses_its_own_mesh_as_truth() {
     assert_eq!(sim.truth.len(), 1);
     assert_eq!(sim.truth[0].1.triangles.len(), truth[0].1.triangles.len());
 }
+
+#[test]
+fn object_motion_moves_the_echoes_but_not_the_recorded_poses() {
+    let still = small_options(PhantomKind::Sphere);
+    let moving = SimulationOptions {
+        motion: echosurf::simulate::HandMotion {
+            object_motion_mm: 2.0,
+            ..still.motion
+        },
+        ..still.clone()
+    };
+    let (a, b) = (
+        simulate_sweeps(&still, &NoProgress).unwrap(),
+        simulate_sweeps(&moving, &NoProgress).unwrap(),
+    );
+    // The tracker cannot see the object move: identical recorded poses, different images.
+    for (fa, fb) in a.sequence.frames.iter().zip(&b.sequence.frames) {
+        assert_eq!(fa.transforms, fb.transforms);
+    }
+    assert_ne!(a.sequence.pixels, b.sequence.pixels);
+    // The truth-frame poses differ by the motion (at most 2 mm sway + 2 mm drift).
+    let last = a.true_image_to_world.len() - 1;
+    let shift = (a.true_image_to_world[last].w_axis - b.true_image_to_world[last].w_axis)
+        .truncate()
+        .length();
+    assert!(shift > 0.01 && shift <= 4.0 + 1e-9, "{shift}");
+}

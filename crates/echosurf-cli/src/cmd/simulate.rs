@@ -21,6 +21,29 @@ pub struct Args {
     /// Random seed: same arguments and seed give identical files.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Scan, noise and motion settings (boxed: they are many).
+    #[command(flatten)]
+    knobs: Box<Knobs>,
+    /// A perfect system: no tracker noise, no calibration error, no object motion.
+    #[arg(long)]
+    no_errors: bool,
+    /// Lattice spacing (mm) of the true surfaces.
+    #[arg(long)]
+    truth_resolution: Option<f64>,
+    /// Write the sequence without zlib compression.
+    #[arg(long)]
+    uncompressed: bool,
+    /// Also write a PNG montage of 12 frames.
+    #[arg(long)]
+    preview: Option<PathBuf>,
+    /// Worker threads (default: all cores). The output does not depend on it.
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+/// Optional settings; each left out keeps the library default.
+#[derive(Debug, clap::Args)]
+struct Knobs {
     /// Frames per sweep.
     #[arg(long)]
     frames_per_sweep: Option<usize>,
@@ -63,21 +86,6 @@ pub struct Args {
     /// Untracked object motion amplitude (mm); 0 = still.
     #[arg(long)]
     object_motion_mm: Option<f64>,
-    /// A perfect system: no tracker noise, no calibration error, no object motion.
-    #[arg(long)]
-    no_errors: bool,
-    /// Lattice spacing (mm) of the true surfaces.
-    #[arg(long)]
-    truth_resolution: Option<f64>,
-    /// Write the sequence without zlib compression.
-    #[arg(long)]
-    uncompressed: bool,
-    /// Also write a PNG montage of 12 frames.
-    #[arg(long)]
-    preview: Option<PathBuf>,
-    /// Worker threads (default: all cores). The output does not depend on it.
-    #[arg(long)]
-    threads: Option<usize>,
 }
 
 fn options_from(args: &Args) -> SimulationOptions {
@@ -86,51 +94,51 @@ fn options_from(args: &Args) -> SimulationOptions {
         seed: args.seed,
         ..Default::default()
     };
-    if let Some(v) = args.frames_per_sweep {
+    if let Some(v) = args.knobs.frames_per_sweep {
         o.frames_per_sweep = v;
     }
-    o.sweeps = args.sweeps;
-    if let Some(v) = args.width {
+    o.sweeps = args.knobs.sweeps;
+    if let Some(v) = args.knobs.width {
         o.width_px = v;
     }
-    if let Some(v) = args.height {
+    if let Some(v) = args.knobs.height {
         o.height_px = v;
     }
-    if let Some(v) = args.pixel_size {
+    if let Some(v) = args.knobs.pixel_size {
         o.pixel_size_mm = v;
     }
-    if let Some(v) = args.frequency {
+    if let Some(v) = args.knobs.frequency {
         // Resolution scales with wavelength unless given explicitly.
         let scale = o.acoustics.frequency_mhz / v;
         o.acoustics.axial_fwhm_mm *= scale;
         o.acoustics.lateral_fwhm_mm *= scale;
         o.acoustics.frequency_mhz = v;
     }
-    if let Some(v) = args.axial_fwhm {
+    if let Some(v) = args.knobs.axial_fwhm {
         o.acoustics.axial_fwhm_mm = v;
     }
-    if let Some(v) = args.lateral_fwhm {
+    if let Some(v) = args.knobs.lateral_fwhm {
         o.acoustics.lateral_fwhm_mm = v;
     }
-    if let Some(v) = args.noise_db {
+    if let Some(v) = args.knobs.noise_db {
         o.acoustics.noise_db = v;
     }
-    if let Some(v) = args.tracker_noise_mm {
+    if let Some(v) = args.knobs.tracker_noise_mm {
         o.errors.tracker_noise_mm = v;
     }
-    if let Some(v) = args.tracker_noise_deg {
+    if let Some(v) = args.knobs.tracker_noise_deg {
         o.errors.tracker_noise_deg = v;
     }
-    if let Some(v) = args.calibration_error_mm {
+    if let Some(v) = args.knobs.calibration_error_mm {
         o.errors.calibration_error_mm = v;
     }
-    if let Some(v) = args.calibration_error_deg {
+    if let Some(v) = args.knobs.calibration_error_deg {
         o.errors.calibration_error_deg = v;
     }
-    if let Some(v) = args.tremor_mm {
+    if let Some(v) = args.knobs.tremor_mm {
         o.motion.tremor_mm = v;
     }
-    if let Some(v) = args.object_motion_mm {
+    if let Some(v) = args.knobs.object_motion_mm {
         o.motion.object_motion_mm = v;
     }
     if let Some(v) = args.truth_resolution {

@@ -399,9 +399,9 @@ impl FrameFormer<'_> {
         let mut transmitted = vec![1f32; ew];
         for v in 0..eh {
             let row = v * ew;
-            for u in 0..ew {
+            for (u, column) in transmitted.iter_mut().enumerate() {
                 let i = row + u;
-                let t = transmitted[u];
+                let t = *column;
                 scat_re[i] *= t;
                 scat_im[i] *= t;
                 face_re[i] *= t;
@@ -409,7 +409,7 @@ impl FrameFormer<'_> {
                 if t < 0.8 {
                     class[i] = CLASS_NONE;
                 }
-                transmitted[u] = t * trans[i];
+                *column = t * trans[i];
             }
         }
 

@@ -347,7 +347,8 @@ mod tests {
         let mesh = uv_sphere(r, 48, 96);
         assert!(mesh.topology().is_closed_manifold());
         let sdf = MeshSdf::new(mesh).unwrap();
-        // Faceting error of a 48 x 96 UV sphere: r (1 - cos(pi/96)) ~ 0.0054 mm; allow 0.01 mm.
+        // Faceting error of a 48 x 96 UV sphere: a face centre sits r (1 - cos(a)) inside the sphere with a
+        // the half-diagonal angle of a cell, ~sqrt(2) pi / 96, i.e. 0.011 mm at r = 10; allow 0.015 mm.
         for i in 0..200 {
             let t = i as f64 * 0.731;
             let dir = DVec3::new(
@@ -358,7 +359,7 @@ mod tests {
             .normalize();
             let radius = 2.0 + 0.1 * i as f64;
             let (d, g) = sdf.distance_and_gradient(dir * radius);
-            assert!((d - (radius - r)).abs() < 0.01, "r {radius}: {d}");
+            assert!((d - (radius - r)).abs() < 0.015, "r {radius}: {d}");
             if (radius - r).abs() > 0.5 {
                 assert!(g.dot(dir) > 0.99, "{g} vs {dir}");
             }

@@ -49,7 +49,10 @@ pub struct SimulationOptions {
     pub acoustics: Acoustics,
     pub motion: HandMotion,
     pub errors: TrackingErrors,
-    /// Lattice spacing of the truth surfaces' extraction (mm).
+    /// Lattice spacing of the truth surfaces' extraction (mm). The surfacer puts every vertex back on the
+    /// zero level, so the truth's error is the chord sagitta, edge^2 / (8 * radius of curvature): at the
+    /// default 0.5 mm it is 0.003 mm on the duck's head (r = 11 mm) and ~0.02 mm inside its beak; 0.25 mm
+    /// costs four times the time for no visible gain.
     pub truth_resolution_mm: f64,
     /// zlib-compress the written sequence.
     pub compress: bool,
@@ -69,7 +72,7 @@ impl Default for SimulationOptions {
             acoustics: Acoustics::default(),
             motion: HandMotion::default(),
             errors: TrackingErrors::default(),
-            truth_resolution_mm: 0.25,
+            truth_resolution_mm: 0.5,
             compress: true,
         }
     }

@@ -159,8 +159,8 @@ fn description_json(
     })
 }
 
-/// Writes a montage of up to `count` frames spread evenly over the sequence (4 per row, 4 px gaps) as
-/// an 8-bit grey PNG.
+/// Writes a montage of up to `count` frames spread evenly over the sweeps (4 per row, 4 px gaps) as an
+/// 8-bit grey PNG.
 pub fn write_preview(path: &Path, sim: &Simulation, count: usize) -> Result<()> {
     let seq = &sim.sequence;
     let n = seq.frames.len();
@@ -170,16 +170,26 @@ pub fn write_preview(path: &Path, sim: &Simulation, count: usize) -> Result<()> 
     if n == 0 || count == 0 {
         return Err(Error::InvalidInput("preview: no frames to show".into()));
     }
-    let shown = count.min(n);
-    let picks: Vec<usize> = (0..shown)
-        .map(|k| {
-            if shown == 1 {
-                n / 2
-            } else {
-                k * (n - 1) / (shown - 1)
-            }
-        })
-        .collect();
+    // Evenly inside each sweep (its first and last frames are usually past the object's ends).
+    let sweeps: Vec<std::ops::Range<usize>> = if sim.sweeps.is_empty() {
+        std::iter::once(0..n).collect()
+    } else {
+        sim.sweeps.clone()
+    };
+    let per_sweep = count.div_ceil(sweeps.len()).max(1);
+    let mut picks: Vec<usize> = Vec::new();
+    for sweep in &sweeps {
+        let len = sweep.end.saturating_sub(sweep.start);
+        for k in 0..per_sweep.min(len) {
+            picks.push(sweep.start + (k + 1) * len / (per_sweep.min(len) + 1));
+        }
+    }
+    picks.truncate(count);
+    picks.retain(|&f| f < n);
+    if picks.is_empty() {
+        return Err(Error::InvalidInput("preview: no frames to show".into()));
+    }
+    let shown = picks.len();
     let columns = shown.min(4);
     let rows = shown.div_ceil(columns);
     let gap = 4;
