@@ -6,6 +6,9 @@
 //! Small problems use a dense LU (the reference); large ones the treecode product inside preconditioned
 //! GMRES ([`fast`]). Near-duplicate samples are merged first; coplanar or tiny inputs get a reduced trend.
 
+// Dense linear algebra reads best in index notation.
+#![allow(clippy::needless_range_loop)]
+
 mod bench_data;
 mod direct;
 mod fast;

@@ -462,12 +462,12 @@ impl Treecode {
         q: &[f64],
         proxies: &[f64],
         values: &mut [f64],
-        mut gradients: Option<&mut [DVec3]>,
+        gradients: Option<&mut [DVec3]>,
     ) {
         let leaves = targets.leaf_ranges();
         let sizes: Vec<usize> = leaves.iter().map(|l| l.1 - l.0).collect();
         let value_chunks = split_by_sizes(values, &sizes);
-        let grad_chunks: Vec<Option<&mut [DVec3]>> = match gradients.as_deref_mut() {
+        let grad_chunks: Vec<Option<&mut [DVec3]>> = match gradients {
             Some(g) => split_by_sizes(g, &sizes).into_iter().map(Some).collect(),
             None => (0..sizes.len()).map(|_| None).collect(),
         };
