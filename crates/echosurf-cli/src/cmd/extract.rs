@@ -68,7 +68,9 @@ pub fn parse_iso(text: &str) -> anyhow::Result<IsoLevels> {
                 .parse::<f64>()
                 .ok()
                 .filter(|v| v.is_finite())
-                .with_context(|| format!("--iso: `{s}` is not a number (expected auto or LEVEL[,LEVEL...])"))
+                .with_context(|| {
+                    format!("--iso: `{s}` is not a number (expected auto or LEVEL[,LEVEL...])")
+                })
         })
         .collect::<anyhow::Result<Vec<f64>>>()?;
     Ok(IsoLevels::Levels(levels))
@@ -79,13 +81,23 @@ pub fn mesh_path(out: &Path, level: f64, several: bool) -> PathBuf {
     if !several {
         return out.to_path_buf();
     }
-    let stem = out.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-    let ext = out.extension().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "ply".into());
+    let stem = out
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let ext = out
+        .extension()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "ply".into());
     out.with_file_name(format!("{stem}_iso{}.{ext}", format_level(level)))
 }
 
 fn format_level(level: f64) -> String {
-    if level.fract() == 0.0 { format!("{level:.0}") } else { format!("{level}") }
+    if level.fract() == 0.0 {
+        format!("{level:.0}")
+    } else {
+        format!("{level}")
+    }
 }
 
 fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
@@ -160,13 +172,18 @@ pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> 
 }
 
 /// Renders all surfaces (merged) with the frame outlines, optionally over a ghost of the truth.
-pub fn write_preview(path: &Path, output: &ExtractOutput, ghost: Option<echosurf::mesh::Mesh>) -> anyhow::Result<()> {
+pub fn write_preview(
+    path: &Path,
+    output: &ExtractOutput,
+    ghost: Option<echosurf::mesh::Mesh>,
+) -> anyhow::Result<()> {
     let mut mesh = echosurf::mesh::Mesh::default();
     for s in &output.surfaces {
         let base = mesh.vertices.len() as u32;
         mesh.vertices.extend(&s.mesh.vertices);
         mesh.normals.extend(&s.mesh.normals);
-        mesh.triangles.extend(s.mesh.triangles.iter().map(|t| t.map(|i| i + base)));
+        mesh.triangles
+            .extend(s.mesh.triangles.iter().map(|t| t.map(|i| i + base)));
     }
     if mesh.normals.len() != mesh.vertices.len() {
         mesh.normals.clear();
@@ -176,7 +193,13 @@ pub fn write_preview(path: &Path, output: &ExtractOutput, ghost: Option<echosurf
         return Ok(());
     }
     // Every 8th frame's outline is enough to show the sweep without hiding the surface.
-    let frames = output.frame_outlines.chunks(4).step_by(8).flatten().copied().collect();
+    let frames = output
+        .frame_outlines
+        .chunks(4)
+        .step_by(8)
+        .flatten()
+        .copied()
+        .collect();
     let options = RenderOptions {
         overlay_lines: frames,
         ghost,
@@ -205,7 +228,11 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
             "echo levels: background {:.1}, boundary {:.1}{}",
             l.background,
             l.boundary,
-            if r.parameters.iso_auto { format!(", iso auto = {:.1}", l.iso) } else { String::new() }
+            if r.parameters.iso_auto {
+                format!(", iso auto = {:.1}", l.iso)
+            } else {
+                String::new()
+            }
         );
     }
     println!(
@@ -220,16 +247,28 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
             format_level(s.level),
             s.mesh.triangles.len(),
             t.components,
-            if t.is_closed_manifold() { "closed manifold" } else if t.is_oriented_manifold() { "manifold with boundary" } else { "NOT manifold" },
+            if t.is_closed_manifold() {
+                "closed manifold"
+            } else if t.is_oriented_manifold() {
+                "manifold with boundary"
+            } else {
+                "NOT manifold"
+            },
             mesh_path(&args.out, s.level, several).display()
         );
     }
-    let stages: Vec<String> = r.stages.iter().map(|s| format!("{} {:.2}s", s.stage, s.seconds)).collect();
+    let stages: Vec<String> = r
+        .stages
+        .iter()
+        .map(|s| format!("{} {:.2}s", s.stage, s.seconds))
+        .collect();
     println!(
         "time {:.2} s ({}); peak memory {}",
         r.total_seconds,
         stages.join(", "),
-        r.peak_rss_bytes.map(|b| format!("{:.0} MB", b as f64 / 1e6)).unwrap_or_else(|| "n/a".into())
+        r.peak_rss_bytes
+            .map(|b| format!("{:.0} MB", b as f64 / 1e6))
+            .unwrap_or_else(|| "n/a".into())
     );
     for w in &r.warnings {
         eprintln!("warning: {w}");

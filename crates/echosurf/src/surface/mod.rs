@@ -188,7 +188,6 @@ pub fn extract_surfaces_with_stats(
         ..Default::default()
     };
     let mut meshes = Vec::with_capacity(levels.len());
-<<<<<<< HEAD
     // Marching tetrahedra and clustering are sequential per level; levels run in parallel (each result
     // depends only on its level, so the order of completion does not matter).
     let h = lattice.spacing_mm;
@@ -211,15 +210,6 @@ pub fn extract_surfaces_with_stats(
         .collect();
     for ((&level, cells), (raw, merged)) in levels.iter().zip(&crossed.per_level).zip(merged_levels)
     {
-=======
-    for (&level, cells) in levels.iter().zip(&crossed.per_level) {
-        let raw = rmt::march_tetrahedra(&lattice, cells, level, options.cluster_cell_factor, |n| {
-            crossed.nodes.get(n)
-        });
-        let h = lattice.spacing_mm;
-        let merged =
-            clustering::cluster_vertices(&raw.positions, &raw.cluster_keys, &raw.triangles, h * h);
->>>>>>> segment
         let mut level_stats = LevelStats {
             level,
             crossed_cells: cells.len(),
