@@ -11,7 +11,8 @@ use crate::progress::Progress;
 use crate::rbf::{FitOptions, FitReport, RbfModel};
 use crate::resources::{StageMeter, StageUsage};
 use crate::samples::{
-    IntensityLevels, SampleSet, collect_samples, estimate_levels, random_decimate,
+    IntensityLevels, SampleSet, collect_samples, estimate_echo_levels, estimate_levels,
+    random_decimate,
 };
 use crate::segment::{
     BandMasks, InitialBand, ResolvedParameters, SegmentOptions, segment_sequence,
@@ -181,7 +182,8 @@ pub fn prepare_samples(
                 .into(),
         ));
     }
-    let levels = estimate_levels(&all.intensities);
+    let levels = estimate_echo_levels(sequence, &poses, &masks)
+        .or_else(|| estimate_levels(&all.intensities));
     let samples = meter.stage("decimate", || {
         random_decimate(&all, options.max_samples, options.seed)
     });
@@ -261,16 +263,40 @@ fn check_levels(levels: &[f64], samples: &SampleSet) -> Result<()> {
 
 /// Seeds for surface-following: samples whose grey level is near some iso-level (they sit close to the
 /// surface), spread over the data by a deterministic stride, at most `max` of them.
-fn surface_seeds(samples: &SampleSet, levels: &[f64], band: f64, max: usize) -> Vec<DVec3> {
-    let near: Vec<DVec3> = samples
-        .positions
+fn surface_seeds(
+    points: &[DVec3],
+    values: &[f64],
+    levels: &[f64],
+    band: f64,
+    max: usize,
+) -> Vec<DVec3> {
+    let near: Vec<DVec3> = points
         .iter()
-        .zip(&samples.intensities)
-        .filter(|(_, v)| levels.iter().any(|&k| (**v as f64 - k).abs() <= band))
+        .zip(values)
+        .filter(|(_, v)| levels.iter().any(|&k| (**v - k).abs() <= band))
         .map(|(p, _)| *p)
         .collect();
     let stride = near.len().div_ceil(max.max(1)).max(1);
     near.into_iter().step_by(stride).collect()
+}
+
+/// The surfacer's domain around data points: their box grown by the trust distance, seeds from the
+/// points whose value lies within `seed_band` of a level, the points themselves as the region of trust.
+pub fn surface_domain(
+    points: &[DVec3],
+    values: &[f64],
+    levels: &[f64],
+    seed_band: f64,
+    trust_distance_mm: f64,
+) -> SurfaceDomain {
+    let (lo, hi) = bounds(points);
+    let margin = DVec3::splat(trust_distance_mm);
+    SurfaceDomain {
+        bounds_min_mm: lo - margin,
+        bounds_max_mm: hi + margin,
+        seeds: surface_seeds(points, values, levels, seed_band.max(1.0), 20_000),
+        trust_points: points.to_vec(),
+    }
 }
 
 /// Frame outlines (clip rectangle if any, else the image border) as world line segments.
@@ -338,18 +364,11 @@ pub fn extract(
     let trust_distance_mm = options
         .trust_distance_mm
         .unwrap_or_else(|| trust_distance_for(spacing));
-    let (lo, hi) = bounds(positions);
-    let margin = DVec3::splat(trust_distance_mm);
     let seed_band = match prepared.levels {
         Some(l) => 0.25 * (l.boundary - l.background).abs() as f64,
         None => 10.0,
     };
-    let domain = SurfaceDomain {
-        bounds_min_mm: lo - margin,
-        bounds_max_mm: hi + margin,
-        seeds: surface_seeds(&prepared.samples, &levels, seed_band.max(1.0), 20_000),
-        trust_points: positions.clone(),
-    };
+    let domain = surface_domain(positions, &values, &levels, seed_band, trust_distance_mm);
     let surface_options = SurfaceOptions {
         trust_distance_mm,
         ..options.surface.clone()

@@ -131,6 +131,75 @@ pub struct IntensityLevels {
 /// background of ~15 and a boundary of ~130, i.e. (50 - 15) / (130 - 15) = 0.30 of the way up.
 pub const ISO_FRACTION: f32 = 0.30;
 
+/// Background and boundary echo levels read from the images the way echoes form: in every column of
+/// every used frame, the brightest kept pixel is the boundary echo of that column and the kept pixels
+/// above it (nearer the probe, where the beam crossed the medium before the boundary) are background.
+/// The boundary level is the upper quartile of the column peaks (columns that cross no echo, e.g. steep
+/// walls, only reach speckle peaks and fall below it); the background is the median of the per-column
+/// medians above the peak. Unlike a two-class split of all kept intensities, this is not fooled by a
+/// band that is mostly acoustic shadow. `None` without usable columns.
+pub fn estimate_echo_levels(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    masks: &BandMasks,
+) -> Option<IntensityLevels> {
+    let (w, h) = (sequence.width, sequence.height);
+    if (masks.width, masks.height) != (w, h) || sequence.is_tracking_only() {
+        return None;
+    }
+    let mut peaks: Vec<f32> = Vec::new();
+    let mut backgrounds: Vec<f32> = Vec::new();
+    let mut above: Vec<f32> = Vec::new();
+    for pose in &poses.poses {
+        let Some(mask) = masks.masks.get(pose.frame_index) else {
+            continue;
+        };
+        let frame = sequence.frame_f32(pose.frame_index);
+        for u in 0..w {
+            let mut peak: Option<(usize, f32)> = None;
+            for v in 0..h {
+                let i = v * w + u;
+                if mask[i] != 0 && peak.is_none_or(|(_, p)| frame[i] > p) {
+                    peak = Some((v, frame[i]));
+                }
+            }
+            let Some((peak_row, peak_value)) = peak else {
+                continue;
+            };
+            peaks.push(peak_value);
+            above.clear();
+            above.extend(
+                (0..peak_row)
+                    .map(|v| v * w + u)
+                    .filter(|&i| mask[i] != 0)
+                    .map(|i| frame[i]),
+            );
+            if above.len() >= 3 {
+                backgrounds.push(median(&mut above));
+            }
+        }
+    }
+    if peaks.is_empty() || backgrounds.is_empty() {
+        return None;
+    }
+    peaks.sort_by(f32::total_cmp);
+    let boundary = peaks[(peaks.len() * 3) / 4];
+    let background = median(&mut backgrounds);
+    if !(boundary > background) {
+        return None;
+    }
+    Some(IntensityLevels {
+        background,
+        boundary,
+        iso: background + ISO_FRACTION * (boundary - background),
+    })
+}
+
+fn median(values: &mut [f32]) -> f32 {
+    let mid = values.len() / 2;
+    *values.select_nth_unstable_by(mid, f32::total_cmp).1
+}
+
 /// Background and boundary levels of a sample set (Otsu's two-class split of a 1024-bin histogram of its
 /// intensities, then each class's median), and a suggested iso-level for `--iso auto`. `None` when there
 /// are no samples or they all have one grey level.

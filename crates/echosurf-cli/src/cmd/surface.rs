@@ -1,8 +1,91 @@
-//! `echosurf surface`.
+//! `echosurf surface`: iso-surfaces of a saved RBF model, so one fit can be surfaced at several levels
+//! and resolutions without refitting.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use echosurf::io;
+use echosurf::pipeline::{IsoLevels, surface_domain};
+use echosurf::rbf::RbfModel;
+use echosurf::surface::{SurfaceOptions, extract_surfaces_with_stats};
+
+use super::extract::{mesh_path, parse_iso};
 
 #[derive(Debug, clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// Fitted model (.esrbf) from `echosurf fit` or `echosurf extract --model`.
+    pub model: PathBuf,
+    /// Iso-level(s), comma separated; one mesh each.
+    #[arg(long)]
+    pub iso: String,
+    /// Output mesh (.ply, .stl or .obj). With several levels, `_iso<LEVEL>` is added before the extension.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Lattice spacing in mm.
+    #[arg(long, default_value_t = 0.5)]
+    pub resolution: f64,
+    /// Region of trust: no surface farther than this (mm) from any centre of the model.
+    #[arg(long, default_value_t = 3.0)]
+    pub trust_distance: f64,
+}
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("`echosurf surface` is not implemented yet")
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let levels = match parse_iso(&args.iso)? {
+        IsoLevels::Levels(v) if !v.is_empty() => v,
+        _ => anyhow::bail!(
+            "--iso: give the level(s) as numbers (a model carries no echo statistics)"
+        ),
+    };
+    let model = RbfModel::load(&args.model)?;
+    let centres = model.centres().to_vec();
+    if centres.is_empty() {
+        anyhow::bail!("{}: the model has no centres", args.model.display());
+    }
+    // The model's own values at its centres say where each level passes.
+    let values = model.values(&centres);
+    let (lo, hi) = values
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    for &k in &levels {
+        if !(k > lo && k < hi) {
+            anyhow::bail!(
+                "--iso {k} is outside the model's values at its centres ({lo:.1} to {hi:.1}): no surface"
+            );
+        }
+    }
+    let domain = surface_domain(
+        &centres,
+        &values,
+        &levels,
+        0.1 * (hi - lo),
+        args.trust_distance,
+    );
+    let options = SurfaceOptions {
+        resolution_mm: args.resolution,
+        trust_distance_mm: args.trust_distance,
+        ..SurfaceOptions::default()
+    };
+    let (meshes, stats) = extract_surfaces_with_stats(&model, &levels, &domain, &options)
+        .with_context(|| format!("surfacing {}", args.model.display()))?;
+    let several = levels.len() > 1;
+    for (&k, mesh) in levels.iter().zip(&meshes) {
+        let path = mesh_path(&args.out, k, several);
+        io::write_mesh(&path, mesh)?;
+        let t = mesh.topology();
+        println!(
+            "iso {k}: {} triangles, {} component(s), {} boundary edges -> {}",
+            mesh.triangles.len(),
+            t.components,
+            t.boundary_edges,
+            path.display()
+        );
+    }
+    println!(
+        "{} field evaluations ({:.1} per triangle)",
+        stats.value_evaluations + stats.gradient_evaluations,
+        stats.evaluations_per_triangle()
+    );
+    Ok(())
 }
