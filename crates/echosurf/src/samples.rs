@@ -185,7 +185,7 @@ pub fn estimate_echo_levels(
     peaks.sort_by(f32::total_cmp);
     let boundary = peaks[(peaks.len() * 3) / 4];
     let background = median(&mut backgrounds);
-    if !(boundary > background) {
+    if boundary.partial_cmp(&background) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     Some(IntensityLevels {
