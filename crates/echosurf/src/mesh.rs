@@ -167,6 +167,83 @@ impl Mesh {
         topo
     }
 
+    /// Gives every fan of triangles around a pinched vertex its own copy of the vertex, so a mesh whose
+    /// edges are manifold becomes a manifold (with boundary). Pinches arise where clipping to the region
+    /// of trust cuts a surface so that two pieces touch at a single vertex. Returns how many vertices
+    /// were added.
+    pub fn split_pinched_vertices(&mut self) -> usize {
+        let n = self.vertices.len();
+        let mut incident: Vec<Vec<u32>> = vec![Vec::new(); n];
+        for (f, t) in self.triangles.iter().enumerate() {
+            for &i in t {
+                if (i as usize) < n {
+                    incident[i as usize].push(f as u32);
+                }
+            }
+        }
+        let mut added = 0;
+        let mut parent: Vec<usize> = Vec::new();
+        let mut first_by_neighbour: Vec<(u32, usize)> = Vec::new();
+        for (v, faces) in incident.iter().enumerate() {
+            if faces.len() < 2 {
+                continue;
+            }
+            parent.clear();
+            parent.extend(0..faces.len());
+            fn find(parent: &mut [usize], mut i: usize) -> usize {
+                while parent[i] != i {
+                    parent[i] = parent[parent[i]];
+                    i = parent[i];
+                }
+                i
+            }
+            // Triangles around v sharing an edge (v, x) belong to one fan.
+            first_by_neighbour.clear();
+            for (k, &f) in faces.iter().enumerate() {
+                for &x in &self.triangles[f as usize] {
+                    if x as usize != v {
+                        first_by_neighbour.push((x, k));
+                    }
+                }
+            }
+            first_by_neighbour.sort_unstable();
+            for pair in first_by_neighbour.windows(2) {
+                if pair[0].0 == pair[1].0 {
+                    let (a, b) = (find(&mut parent, pair[0].1), find(&mut parent, pair[1].1));
+                    if a != b {
+                        parent[a.max(b)] = a.min(b);
+                    }
+                }
+            }
+            let roots: Vec<usize> = (0..faces.len()).map(|k| find(&mut parent, k)).collect();
+            let mut fans: Vec<usize> = roots.clone();
+            fans.sort_unstable();
+            fans.dedup();
+            // The fan holding the first incident triangle keeps v; every other fan gets a copy.
+            for &fan in fans.iter().skip(1) {
+                let copy = self.vertices.len() as u32;
+                self.vertices.push(self.vertices[v]);
+                if self.normals.len() == n + added {
+                    self.normals.push(self.normals[v]);
+                }
+                added += 1;
+                for (k, &f) in faces.iter().enumerate() {
+                    if roots[k] == fan {
+                        for i in self.triangles[f as usize].iter_mut() {
+                            if *i as usize == v {
+                                *i = copy;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        if self.normals.len() != self.vertices.len() && !self.normals.is_empty() {
+            self.normals.clear();
+        }
+        added
+    }
+
     /// Vertices whose incident triangles form more than one fan: the link (opposite edges) of such a
     /// vertex falls apart into several pieces.
     fn count_pinched_vertices(&self, faces: &[usize]) -> usize {
@@ -274,5 +351,28 @@ mod tests {
         let t = m.topology();
         assert_eq!(t.degenerate_triangles, 1);
         assert_eq!(t.duplicate_triangles, 1);
+    }
+
+    #[test]
+    fn splitting_pinched_vertices_makes_a_manifold() {
+        let mut m = tetrahedron();
+        let offset = m.vertices.len() as u32;
+        m.vertices.extend([
+            DVec3::new(0.0, 0.0, 2.0),
+            DVec3::new(1.0, 0.0, 2.0),
+            DVec3::new(0.0, 1.0, 2.0),
+        ]);
+        let (a, b, c, d) = (3, offset, offset + 1, offset + 2);
+        m.triangles
+            .extend([[a, c, b], [a, b, d], [a, d, c], [b, c, d]]);
+        m.normals = vec![DVec3::Z; m.vertices.len()];
+        assert_eq!(m.split_pinched_vertices(), 1);
+        let t = m.topology();
+        assert!(t.is_closed_manifold(), "{t:?}");
+        assert_eq!(t.components, 2);
+        assert_eq!(t.euler_characteristic, 4);
+        assert_eq!(m.normals.len(), m.vertices.len());
+        // A manifold is left alone.
+        assert_eq!(m.split_pinched_vertices(), 0);
     }
 }

@@ -118,6 +118,8 @@ pub struct LevelStats {
     pub refused_merges: usize,
     /// Triangles still folded over (winding against the field normals) after untangling; 0 normally.
     pub folded_triangles: usize,
+    /// Vertices duplicated because trust clipping left two surface pieces touching at them.
+    pub split_pinched_vertices: usize,
     /// Vertices whose Newton iteration did not reach `surface_tolerance_mm` (left at their best position).
     pub unconverged_vertices: usize,
 }
@@ -219,6 +221,7 @@ pub fn extract_surfaces_with_stats(
             triangles: merged.triangles.len(),
             refused_merges: merged.refused_merges,
             unconverged_vertices: 0,
+            split_pinched_vertices: 0,
             folded_triangles: 0,
         };
         let (mut vertices, mut normals, unconverged) =
@@ -235,11 +238,15 @@ pub fn extract_surfaces_with_stats(
             &mut counter,
         );
         finish_normals(&mut normals, &vertices, &merged.triangles);
-        meshes.push(Mesh {
+        let mut mesh = Mesh {
             vertices,
             normals,
             triangles: merged.triangles,
-        });
+        };
+        // Clipping to the region of trust can leave two pieces touching at one vertex.
+        level_stats.split_pinched_vertices = mesh.split_pinched_vertices();
+        level_stats.vertices = mesh.vertices.len();
+        meshes.push(mesh);
         stats.levels.push(level_stats);
     }
     stats.value_evaluations = counter.values;
