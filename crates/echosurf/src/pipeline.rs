@@ -11,7 +11,7 @@ use crate::progress::Progress;
 use crate::rbf::{FitOptions, FitReport, RbfModel};
 use crate::resources::{StageMeter, StageUsage};
 use crate::samples::{
-    IntensityLevels, SampleSet, collect_samples, estimate_echo_levels, estimate_levels,
+    IntensityLevels, SampleSet, collect_samples_binned, estimate_echo_levels, estimate_levels,
     random_decimate,
 };
 use crate::segment::{
@@ -44,6 +44,9 @@ pub struct ExtractOptions {
     pub surface: SurfaceOptions,
     /// Region-of-trust radius in mm; `None` derives it from the frame spacing (see [`trust_distance_for`]).
     pub trust_distance_mm: Option<f64>,
+    /// Kept pixels are averaged over blocks of about this size (mm, in the image plane) before random
+    /// decimation; 0 uses single pixels.
+    pub sample_bin_mm: f64,
 }
 
 impl Default for ExtractOptions {
@@ -55,12 +58,21 @@ impl Default for ExtractOptions {
             reference: ReferenceChoice::Auto,
             max_samples: 100_000,
             seed: 1,
-            fit: FitOptions::default(),
+            fit: FitOptions {
+                smoothing: DEFAULT_SMOOTHING_MM,
+                ..FitOptions::default()
+            },
             surface: SurfaceOptions::default(),
             trust_distance_mm: None,
+            sample_bin_mm: 0.4,
         }
     }
 }
+
+/// Smoothing weight `extract` uses unless told otherwise. Measured on the simulated duck (100k samples,
+/// 0.4 mm bins): w = 1 mm leaves speckle blobs (156 components, mean 0.49 mm to truth), w = 5 mm gives
+/// 46 components at mean 0.46 mm, w = 20 mm loses completeness (19% vs 33%).
+pub const DEFAULT_SMOOTHING_MM: f64 = 5.0;
 
 /// One extracted surface.
 #[derive(Debug, Clone)]
@@ -78,6 +90,8 @@ pub struct StageCounts {
     pub pixels: usize,
     /// Pixels inside the bands.
     pub kept_pixels: usize,
+    /// Samples after block averaging (before decimation).
+    pub binned_samples: usize,
     /// Samples handed to the fit after random decimation.
     pub samples: usize,
     pub centres: usize,
@@ -175,7 +189,13 @@ pub fn prepare_samples(
             progress,
         )
     })?;
-    let all = meter.stage("samples", || collect_samples(sequence, &poses, &masks));
+    let pixel_size_mm = calibration
+        .map(|c| c.pixel_size_mm())
+        .unwrap_or([f64::NAN, f64::NAN]);
+    let bin_px = sample_bin_px(options.sample_bin_mm, pixel_size_mm);
+    let all = meter.stage("samples", || {
+        collect_samples_binned(sequence, &poses, &masks, bin_px)
+    });
     if all.is_empty() {
         return Err(Error::InvalidInput(
             "segmentation kept no pixels: no samples to fit (check the initial band or the clip rectangle)"
@@ -194,7 +214,12 @@ pub fn prepare_samples(
         frames: sequence.frames.len(),
         frames_used: poses.poses.len(),
         pixels: poses.poses.len() * sequence.width * sequence.height,
-        kept_pixels: all.len(),
+        kept_pixels: poses
+            .poses
+            .iter()
+            .map(|p| masks.kept_count(p.frame_index))
+            .sum(),
+        binned_samples: all.len(),
         samples: samples.len(),
         ..Default::default()
     };
@@ -206,6 +231,18 @@ pub fn prepare_samples(
         levels,
         counts,
         pixel_size_mm,
+    })
+}
+
+/// Block size in pixels for [`ExtractOptions::sample_bin_mm`]: the nearest whole number of pixels along
+/// each image axis, at least 1 (1 without a known pixel size).
+pub fn sample_bin_px(bin_mm: f64, pixel_size_mm: [f64; 2]) -> [usize; 2] {
+    pixel_size_mm.map(|p| {
+        if bin_mm > 0.0 && p.is_finite() && p > 0.0 {
+            ((bin_mm / p).round() as usize).clamp(1, 64)
+        } else {
+            1
+        }
     })
 }
 
@@ -315,7 +352,11 @@ pub fn frame_outlines(
             let corners = match clip {
                 Some([u0, v0, u1, v1]) => [(u0, v0), (u1, v0), (u1, v1), (u0, v1)]
                     .map(|(u, v)| p.image_to_world.transform_point3(DVec3::new(u, v, 0.0))),
-                None => frame_corners(sequence, p),
+                None => {
+                    // frame_corners lists (0,0), (u,0), (0,v), (u,v): reorder into a cycle.
+                    let [a, b, c, d] = frame_corners(sequence, p);
+                    [a, b, d, c]
+                }
             };
             (0..4).map(move |i| [corners[i], corners[(i + 1) % 4]])
         })

@@ -88,6 +88,66 @@ pub fn collect_samples(
     set
 }
 
+/// Kept pixels averaged over `bin_px = [columns, rows]` blocks of each frame: one sample per block with
+/// at least one kept pixel, at the mean position of its kept pixels, with their mean grey level.
+/// Averaging a few pixels (about one speckle cell) removes most of the speckle variance before the fit
+/// and lets a fixed sample budget cover much more of the band than single pixels would. `[1, 1]` is
+/// [`collect_samples`].
+pub fn collect_samples_binned(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    masks: &BandMasks,
+    bin_px: [usize; 2],
+) -> SampleSet {
+    let [bu, bv] = bin_px.map(|b| b.max(1));
+    if bu == 1 && bv == 1 {
+        return collect_samples(sequence, poses, masks);
+    }
+    let (w, h) = (sequence.width, sequence.height);
+    let mut set = SampleSet::default();
+    if (masks.width, masks.height) != (w, h) || sequence.is_tracking_only() {
+        return set;
+    }
+    let mut ordered: Vec<_> = poses
+        .poses
+        .iter()
+        .filter(|p| p.frame_index < masks.masks.len() && p.frame_index < sequence.frames.len())
+        .collect();
+    ordered.sort_by_key(|p| p.frame_index);
+    ordered.dedup_by_key(|p| p.frame_index);
+    for pose in ordered {
+        let f = pose.frame_index;
+        let mask = &masks.masks[f];
+        for v0 in (0..h).step_by(bv) {
+            for u0 in (0..w).step_by(bu) {
+                let (mut su, mut sv, mut si, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+                for v in v0..(v0 + bv).min(h) {
+                    for u in u0..(u0 + bu).min(w) {
+                        if mask[v * w + u] != 0 {
+                            su += u as f64;
+                            sv += v as f64;
+                            si += sequence.pixel_f32(f, u, v) as f64;
+                            n += 1;
+                        }
+                    }
+                }
+                if n > 0 {
+                    let k = n as f64;
+                    set.positions
+                        .push(pose.image_to_world.transform_point3(DVec3::new(
+                            su / k,
+                            sv / k,
+                            0.0,
+                        )));
+                    set.intensities.push((si / k) as f32);
+                    set.frame_of_sample.push(f as u32);
+                }
+            }
+        }
+    }
+    set
+}
+
 /// At most `target` samples chosen uniformly at random without replacement, in their original order.
 /// Deterministic in `seed` (ChaCha8; Floyd's algorithm over indices, so O(target) random draws).
 pub fn random_decimate(set: &SampleSet, target: usize, seed: u64) -> SampleSet {
@@ -361,5 +421,65 @@ mod tests {
         assert!((l.iso - (l.background + 0.3 * (l.boundary - l.background))).abs() < 1e-4);
         assert!(estimate_levels(&[]).is_none());
         assert!(estimate_levels(&[3.0, 3.0]).is_none());
+    }
+}
+
+#[cfg(test)]
+mod binning_tests {
+    use super::*;
+    use crate::io::{FramePose, PixelData, TrackedFrame};
+    use glam::DMat4;
+
+    #[test]
+    fn binned_samples_average_kept_pixels_of_each_block() {
+        let (w, h) = (4usize, 2usize);
+        let pixels: Vec<u8> = vec![10, 20, 30, 40, 50, 60, 70, 80];
+        let seq = TrackedSequence {
+            width: w,
+            height: h,
+            channels: 1,
+            orientation: "MF".into(),
+            frames: vec![TrackedFrame::default()],
+            pixels: PixelData::U8(pixels),
+            header: Default::default(),
+        };
+        let poses = PoseResolution {
+            poses: vec![FramePose {
+                frame_index: 0,
+                image_to_world: DMat4::from_scale(glam::DVec3::splat(0.5)),
+            }],
+            skipped: vec![],
+            world_frame: "Tracker".into(),
+        };
+        // Keep everything but pixel (1, 1) = 60.
+        let masks = crate::segment::BandMasks {
+            width: w,
+            height: h,
+            masks: vec![vec![255, 255, 255, 255, 255, 0, 255, 255]],
+            warnings: vec![],
+            initialised_frames: vec![0],
+            frames: seq.frames.clone(),
+            orientation: "MF".into(),
+            parameters: crate::segment::ResolvedParameters {
+                pixel_size_mm: None,
+                smoothing_sigma_px: 0.0,
+                likelihood_sigma_px: 15.0,
+                likelihood_truncation_px: 32.0,
+                edgel_count: 1,
+                band_radius_inside_px: 1.0,
+                band_radius_outside_px: 1.0,
+            },
+        };
+        let set = collect_samples_binned(&seq, &poses, &masks, [2, 2]);
+        assert_eq!(set.len(), 2);
+        // Block (0..2, 0..2): pixels 10, 20, 50 at (0,0), (1,0), (0,1).
+        assert!((set.intensities[0] - (80.0 / 3.0)).abs() < 1e-4);
+        assert!(set.positions[0].distance(glam::DVec3::new(0.5 / 3.0, 0.5 / 3.0, 0.0)) < 1e-12);
+        // Block (2..4, 0..2): all four kept.
+        assert!((set.intensities[1] - 55.0).abs() < 1e-4);
+        assert_eq!(
+            collect_samples_binned(&seq, &poses, &masks, [1, 1]).len(),
+            7
+        );
     }
 }

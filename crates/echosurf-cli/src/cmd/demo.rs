@@ -60,13 +60,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         serde_json::to_string_pretty(&output.report)?.as_bytes(),
     )?;
 
-    let truth = sim
-        .truth
-        .iter()
-        .find(|(name, _)| name == "outer")
-        .or_else(|| sim.truth.first())
-        .map(|(_, m)| m.clone())
-        .context("the simulation has no truth surface")?;
+    // All true walls in one mesh (the duck's outer and inner wall): each extracted sheet is scored
+    // against the wall it belongs to.
+    let mut truth = echosurf::mesh::Mesh::default();
+    for (_, m) in &sim.truth {
+        let base = truth.vertices.len() as u32;
+        truth.vertices.extend(&m.vertices);
+        truth.normals.extend(&m.normals);
+        truth
+            .triangles
+            .extend(m.triangles.iter().map(|t| t.map(|i| i + base)));
+    }
+    if truth.is_empty() {
+        anyhow::bail!("the simulation has no truth surface");
+    }
     let comparison = compare_meshes(&surface.mesh, &truth, &CompareOptions::default())?;
     let preview_path = args.out.join("duck_preview.png");
     write_preview(&preview_path, &output, Some(truth))?;
@@ -92,7 +99,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         comparison.mesh_topology.components
     );
     println!(
-        "  accuracy vs outer wall: mean {:.2} mm, p95 {:.2} mm; completeness (1 mm) {:.1} %",
+        "  accuracy vs true walls: mean {:.2} mm, p95 {:.2} mm; completeness (1 mm) {:.1} %",
         comparison.accuracy.mean_mm,
         comparison.accuracy.p95_mm,
         100.0 * comparison.completeness_1mm

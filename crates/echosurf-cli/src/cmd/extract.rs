@@ -39,6 +39,9 @@ pub struct Args {
     /// Region of trust: no surface farther than this (mm) from any sample. Default: from frame spacing.
     #[arg(long)]
     pub trust_distance: Option<f64>,
+    /// Average kept pixels over blocks of about this size (mm) before decimation; 0 = single pixels.
+    #[arg(long, default_value_t = 0.4)]
+    pub sample_bin: f64,
     /// Seed of the random decimation (and of everything else random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -130,7 +133,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         max_samples: args.max_samples,
         seed: args.seed,
         fit: FitOptions {
-            smoothing: args.smoothing.unwrap_or(defaults.smoothing),
+            smoothing: args.smoothing.unwrap_or(pipeline::DEFAULT_SMOOTHING_MM),
             accuracy: args.accuracy.unwrap_or(defaults.accuracy),
             seed: args.seed,
             ..defaults
@@ -140,6 +143,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             ..SurfaceOptions::default()
         },
         trust_distance_mm: args.trust_distance,
+        sample_bin_mm: args.sample_bin,
     };
     let progress = BarProgress::new();
     let output = pipeline::extract(&sequence, Some(&calibration), &options, &progress)

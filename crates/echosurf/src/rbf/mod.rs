@@ -352,13 +352,8 @@ fn solve_partition_of_unity(
         overlap: options.pu_overlap,
         min_overlap_mm: options.pu_min_overlap_mm,
     };
-    let (pu_model, stats) = pu::fit_pu(
-        pts,
-        vals,
-        options.smoothing,
-        options.eval_accuracy,
-        params,
-    )?;
+    let (pu_model, stats) =
+        pu::fit_pu(pts, vals, options.smoothing, options.eval_accuracy, params)?;
     progress.finish();
     let size = stats.max_patch_points + 4;
     let solver_bytes =
