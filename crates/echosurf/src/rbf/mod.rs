@@ -97,7 +97,7 @@ impl Default for FitOptions {
             solver: SolverChoice::Auto,
             direct_max_points: 2000,
             max_iterations: 1000,
-            pu_leaf_points: 100,
+            pu_leaf_points: 64,
             pu_overlap: 0.5,
             pu_min_overlap_mm: 1.0,
         }
@@ -352,13 +352,8 @@ fn solve_partition_of_unity(
         overlap: options.pu_overlap,
         min_overlap_mm: options.pu_min_overlap_mm,
     };
-    let (pu_model, stats) = pu::fit_pu(
-        pts,
-        vals,
-        options.smoothing,
-        options.eval_accuracy,
-        params,
-    )?;
+    let (pu_model, stats) =
+        pu::fit_pu(pts, vals, options.smoothing, options.eval_accuracy, params)?;
     progress.finish();
     let size = stats.max_patch_points + 4;
     let solver_bytes =
@@ -486,5 +481,7 @@ fn greedy_reduction(
     }
 }
 
+#[cfg(test)]
+mod pu_tests;
 #[cfg(test)]
 mod tests;

@@ -229,9 +229,8 @@ impl RbfModel {
         let bytes = match &self.kind {
             ModelKind::Global(g) => g.encode(),
             ModelKind::PartitionOfUnity(pu) => {
-                let mut bytes = Vec::with_capacity(
-                    12 + PuModel::ENCODED_HEADER_BYTES + pu.memory_bytes() + 8,
-                );
+                let mut bytes =
+                    Vec::with_capacity(12 + PuModel::ENCODED_HEADER_BYTES + pu.memory_bytes() + 8);
                 bytes.extend_from_slice(MAGIC);
                 bytes.extend_from_slice(&PU_VERSION.to_le_bytes());
                 pu.encode(&mut bytes);
@@ -275,8 +274,10 @@ impl RbfModel {
                 let stored = u64::from_le_bytes(bytes[body..].try_into().expect("8 bytes"));
                 // Sizes first (a truncated file is reported as such), then the checksum.
                 let parsed = PuModel::decode(&bytes[12..body]);
-                if let Err((problem @ (FormatProblem::Truncated | FormatProblem::SizeMismatch), m)) =
-                    &parsed
+                if let Err((
+                    problem @ (FormatProblem::Truncated | FormatProblem::SizeMismatch),
+                    m,
+                )) = &parsed
                 {
                     return Err(bad(*problem, m.clone()));
                 }
@@ -288,7 +289,9 @@ impl RbfModel {
             }
             _ => Err(bad(
                 FormatProblem::Unsupported,
-                format!("model version {version}, this build reads versions {VERSION} and {PU_VERSION}"),
+                format!(
+                    "model version {version}, this build reads versions {VERSION} and {PU_VERSION}"
+                ),
             )),
         }
     }

@@ -291,6 +291,36 @@ impl PuModel {
 
     /// Raw (unnormalised) weights of all supports containing `x` (clamped to the root box), in BVH order.
     fn raw_weights(&self, x: DVec3, out: &mut Vec<WeightTerm>) {
+        self.covering_weights(x, out);
+        if out.is_empty() {
+            // Only for damaged models (a valid partition covers the root box): nearest support, weight 1.
+            let xc = x.clamp(self.root_lo, self.root_hi);
+            let mut best = (f64::INFINITY, 0u32);
+            for (j, (c, h)) in self
+                .support_centre
+                .iter()
+                .zip(&self.support_half)
+                .enumerate()
+            {
+                let t = ((xc - *c).abs() / *h).max_element();
+                if t < best.0 {
+                    best = (t, j as u32);
+                }
+            }
+            out.push(WeightTerm {
+                patch: best.1,
+                weight: 1.0,
+                gradient: DVec3::ZERO,
+            });
+        }
+    }
+
+    #[cfg(test)]
+    pub fn raw_weights_for_test(&self, x: DVec3, out: &mut Vec<WeightTerm>) {
+        self.covering_weights(x, out);
+    }
+
+    fn covering_weights(&self, x: DVec3, out: &mut Vec<WeightTerm>) {
         out.clear();
         let xc = x.clamp(self.root_lo, self.root_hi);
         // Along an axis where x left the root box the weights are constant.
@@ -346,26 +376,11 @@ impl PuModel {
                 top += 2;
             }
         }
-        if out.is_empty() {
-            // Only for damaged models (a valid partition covers the root box): nearest support, weight 1.
-            let mut best = (f64::INFINITY, 0u32);
-            for (j, (c, h)) in self.support_centre.iter().zip(&self.support_half).enumerate() {
-                let t = ((xc - *c).abs() / *h).max_element();
-                if t < best.0 {
-                    best = (t, j as u32);
-                }
-            }
-            out.push(WeightTerm {
-                patch: best.1,
-                weight: 1.0,
-                gradient: DVec3::ZERO,
-            });
-        }
     }
 
     fn total_weight(&self, x: DVec3) -> f64 {
         let mut terms = Vec::new();
-        self.raw_weights(x, &mut terms);
+        self.covering_weights(x, &mut terms);
         terms.iter().map(|t| t.weight).sum()
     }
 
@@ -498,12 +513,19 @@ impl PuModel {
             }
         }
         for j in 0..self.patches() {
-            let (c, h, l) = (
-                self.support_centre[j],
-                self.support_half[j],
-                self.linear[j],
-            );
-            for v in [c.x, c.y, c.z, h.x, h.y, h.z, self.constant[j], l.x, l.y, l.z] {
+            let (c, h, l) = (self.support_centre[j], self.support_half[j], self.linear[j]);
+            for v in [
+                c.x,
+                c.y,
+                c.z,
+                h.x,
+                h.y,
+                h.z,
+                self.constant[j],
+                l.x,
+                l.y,
+                l.z,
+            ] {
                 bytes.extend_from_slice(&v.to_le_bytes());
             }
             let count = (self.offsets[j + 1] - self.offsets[j]) as u64;
@@ -523,7 +545,10 @@ impl PuModel {
     pub fn decode(body: &[u8]) -> std::result::Result<PuModel, (FormatProblem, String)> {
         let header = Self::ENCODED_HEADER_BYTES;
         if body.len() < header {
-            return Err((FormatProblem::Truncated, "file ends inside the header".into()));
+            return Err((
+                FormatProblem::Truncated,
+                "file ends inside the header".into(),
+            ));
         }
         let f = |k: usize| f64::from_le_bytes(body[k..k + 8].try_into().expect("8 bytes"));
         let u = |k: usize| u64::from_le_bytes(body[k..k + 8].try_into().expect("8 bytes"));
@@ -544,8 +569,7 @@ impl PuModel {
             return Err((FormatProblem::BadValue, "empty root box".into()));
         }
         let (n, m, k) = (u(64), u(72), u(80));
-        let expected =
-            header as u128 + n as u128 * 24 + m as u128 * 88 + k as u128 * 32;
+        let expected = header as u128 + n as u128 * 24 + m as u128 * 88 + k as u128 * 32;
         if expected != body.len() as u128 {
             let problem = if expected > body.len() as u128 {
                 FormatProblem::Truncated
@@ -692,7 +716,12 @@ impl KdTree {
             return id;
         }
         let slice = &mut self.order[start..end];
-        let (plo, phi) = bounds(&slice.iter().map(|&i| points[i as usize]).collect::<Vec<_>>());
+        let (plo, phi) = bounds(
+            &slice
+                .iter()
+                .map(|&i| points[i as usize])
+                .collect::<Vec<_>>(),
+        );
         let spread = phi - plo;
         let mut axes = [0usize, 1, 2];
         axes.sort_by(|&a, &b| spread[b].total_cmp(&spread[a]).then(a.cmp(&b)));
@@ -748,7 +777,10 @@ fn median_split(points: &[DVec3], slice: &mut [u32], axis: usize) -> Option<(usi
     let mid = slice.len() / 2;
     slice.select_nth_unstable_by(mid, |a, b| key(a).total_cmp(&key(b)).then(a.cmp(b)));
     let pivot = key(&slice[mid]);
-    let below_max = slice[..mid].iter().map(key).fold(f64::NEG_INFINITY, f64::max);
+    let below_max = slice[..mid]
+        .iter()
+        .map(key)
+        .fold(f64::NEG_INFINITY, f64::max);
     if below_max < pivot {
         return Some((mid, 0.5 * (below_max + pivot)));
     }
