@@ -326,11 +326,12 @@ fn tune_pu_params() {
     let probes = probes_in_bounds(&pts, 10_000, 6);
     let dv = direct.values(&probes);
     for (leaf, overlap, min_overlap) in [
-        (32usize, 0.5, 1.0),
-        (64, 0.5, 0.5),
-        (64, 0.5, 1.0),
-        (64, 1.0, 1.0),
-        (64, 0.5, 2.0),
+        (64usize, 0.5, 1.0),
+        (64, 0.25, 0.5),
+        (64, 0.25, 1.0),
+        (64, 0.35, 0.5),
+        (100, 0.25, 0.5),
+        (128, 0.25, 0.5),
     ] {
         {
             let o = FitOptions {
@@ -347,5 +348,48 @@ fn tune_pu_params() {
                 report.mean_patch_points, report.fit_seconds
             );
         }
+    }
+}
+
+#[test]
+#[ignore]
+fn tune_pu_params_dense() {
+    // Realistic density: the 100k-sample sweep cut to a 16 x 12 mm column (~4,000 samples).
+    let (all, all_vals) = ultrasound_like_samples(100_000, 5);
+    let (pts, vals): (Vec<DVec3>, Vec<f64>) = all
+        .iter()
+        .zip(&all_vals)
+        .filter(|(p, _)| p.x.abs() < 8.0 && (p.y - 18.0).abs() < 6.0)
+        .map(|(p, v)| (*p, *v))
+        .unzip();
+    let direct_opts = FitOptions {
+        solver: SolverChoice::Direct,
+        ..pu_options(1.0)
+    };
+    let (direct, _) = fit(&pts, &vals, &direct_opts, &NoProgress).unwrap();
+    let probes = probes_in_bounds(&pts, 10_000, 6);
+    let dv = direct.values(&probes);
+    let ds = direct.values(&pts);
+    for (leaf, overlap, min_overlap) in [
+        (64usize, 0.5, 1.0),
+        (64, 0.25, 0.5),
+        (64, 0.35, 0.5),
+        (100, 0.25, 0.5),
+        (128, 0.5, 1.0),
+    ] {
+        let o = FitOptions {
+            pu_leaf_points: leaf,
+            pu_overlap: overlap,
+            pu_min_overlap_mm: min_overlap,
+            ..pu_options(1.0)
+        };
+        let (pu, report) = fit(&pts, &vals, &o, &NoProgress).unwrap();
+        let (m, r) = max_rms(&dv, &pu.values(&probes));
+        let (ms, rs) = max_rms(&ds, &pu.values(&pts));
+        eprintln!(
+            "dense {} pts: leaf {leaf} overlap {overlap} min {min_overlap}: patch {:.0} box max {m:.2} rms {r:.3} samples max {ms:.2} rms {rs:.3}",
+            pts.len(),
+            report.mean_patch_points
+        );
     }
 }
