@@ -99,7 +99,7 @@ impl Default for FitOptions {
             max_iterations: 1000,
             pu_leaf_points: 64,
             pu_overlap: 0.5,
-            pu_min_overlap_mm: 1.0,
+            pu_min_overlap_mm: 0.5,
         }
     }
 }

@@ -370,13 +370,7 @@ fn tune_pu_params_dense() {
     let probes = probes_in_bounds(&pts, 10_000, 6);
     let dv = direct.values(&probes);
     let ds = direct.values(&pts);
-    for (leaf, overlap, min_overlap) in [
-        (64usize, 0.5, 1.0),
-        (64, 0.25, 0.5),
-        (64, 0.35, 0.5),
-        (100, 0.25, 0.5),
-        (128, 0.5, 1.0),
-    ] {
+    for (leaf, overlap, min_overlap) in [(64usize, 0.5, 1.0), (64, 0.5, 0.5), (64, 0.5, 0.25), (96, 0.5, 0.5), (64, 0.75, 0.5)] {
         let o = FitOptions {
             pu_leaf_points: leaf,
             pu_overlap: overlap,
