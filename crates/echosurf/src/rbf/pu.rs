@@ -233,33 +233,38 @@ fn solve_local(
             .collect();
         (vec![0.0; n], d)
     } else {
-        let size = n + r;
-        let mut a = vec![0.0; size * size];
-        for i in 0..n {
-            let row = &mut a[i * size..(i + 1) * size];
-            for j in 0..n {
-                row[j] = (rel[i] - rel[j]).length();
+        match projected_cholesky_solve(&rel, &f, &u, r, smoothing) {
+            Some(solution) => solution,
+            None => {
+                let size = n + r;
+                let mut a = vec![0.0; size * size];
+                for i in 0..n {
+                    let row = &mut a[i * size..(i + 1) * size];
+                    for j in 0..n {
+                        row[j] = (rel[i] - rel[j]).length();
+                    }
+                    row[i] -= smoothing;
+                    row[n..].copy_from_slice(&u[i * r..(i + 1) * r]);
+                }
+                for k in 0..r {
+                    let row = &mut a[(n + k) * size..(n + k + 1) * size];
+                    for j in 0..n {
+                        row[j] = u[j * r + k];
+                    }
+                }
+                let mut b = vec![0.0; size];
+                b[..n].copy_from_slice(&f);
+                if !lu_solve(&mut a, size, &mut b, 1) || b.iter().any(|v| !v.is_finite()) {
+                    return Err(Error::Numerical(format!(
+                        "partition-of-unity patch at {centre:?} ({n} samples): singular local \
+                         system (merge duplicate points or increase smoothing)"
+                    )));
+                }
+                let d = b[n..].to_vec();
+                b.truncate(n);
+                (b, d)
             }
-            row[i] -= smoothing;
-            row[n..].copy_from_slice(&u[i * r..(i + 1) * r]);
         }
-        for k in 0..r {
-            let row = &mut a[(n + k) * size..(n + k + 1) * size];
-            for j in 0..n {
-                row[j] = u[j * r + k];
-            }
-        }
-        let mut b = vec![0.0; size];
-        b[..n].copy_from_slice(&f);
-        if !lu_solve(&mut a, size, &mut b, 1) || b.iter().any(|v| !v.is_finite()) {
-            return Err(Error::Numerical(format!(
-                "partition-of-unity patch at {centre:?} ({n} samples): singular local system \
-                 (merge duplicate points or increase smoothing)"
-            )));
-        }
-        let d = b[n..].to_vec();
-        b.truncate(n);
-        (b, d)
     };
     let (c0, linear) = basis.to_linear(&d);
     // c0 + c.(x - o) with x relative to the patch centre: constant at the patch centre is c0 - c.o.
@@ -273,6 +278,143 @@ fn solve_local(
         linear,
         rank: r,
     })
+}
+
+/// Solves the local saddle system on the null space of the trend: with `H = H_1..H_r` Householder
+/// reflectors mapping the (orthonormal) trend columns U onto the first r unit vectors, `l = H [0; y]`
+/// where `-(H^T (A - wI) H)_22 y = -(H^T f)_2` is symmetric positive definite (ALGORITHMS.md §1), solved
+/// by Cholesky at half the cost of the saddle-point LU; then `d = U^T (f - (A - wI) l)`. Returns None
+/// if the Cholesky factorisation meets a non-positive pivot (the caller falls back to LU).
+pub(crate) fn projected_cholesky_solve(
+    rel: &[DVec3],
+    f: &[f64],
+    u: &[f64],
+    r: usize,
+    smoothing: f64,
+) -> Option<(Vec<f64>, Vec<f64>)> {
+    let n = rel.len();
+    let mut m = vec![0.0; n * n];
+    for i in 0..n {
+        for j in 0..n {
+            m[i * n + j] = (rel[i] - rel[j]).length();
+        }
+        m[i * n + i] -= smoothing;
+    }
+    // Householder vectors (unit, zero above row k) reducing U to upper triangular form.
+    let mut cols: Vec<Vec<f64>> = (0..r)
+        .map(|k| (0..n).map(|i| u[i * r + k]).collect())
+        .collect();
+    let mut reflectors: Vec<Vec<f64>> = Vec::with_capacity(r);
+    for k in 0..r {
+        let x = &cols[k];
+        let norm = x[k..].iter().map(|v| v * v).sum::<f64>().sqrt();
+        let mut v = vec![0.0; n];
+        v[k..].copy_from_slice(&x[k..]);
+        let alpha = if x[k] >= 0.0 { -norm } else { norm };
+        v[k] -= alpha;
+        let vnorm = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+        if !(vnorm > 0.0) {
+            return None;
+        }
+        v.iter_mut().for_each(|a| *a /= vnorm);
+        for c in cols.iter_mut().skip(k) {
+            let dot: f64 = v[k..].iter().zip(&c[k..]).map(|(a, b)| a * b).sum();
+            for i in k..n {
+                c[i] -= 2.0 * dot * v[i];
+            }
+        }
+        reflectors.push(v);
+    }
+    let reflect = |x: &mut [f64], v: &[f64]| {
+        let dot: f64 = v.iter().zip(x.iter()).map(|(a, b)| a * b).sum();
+        for (xi, vi) in x.iter_mut().zip(v) {
+            *xi -= 2.0 * dot * vi;
+        }
+    };
+    // M <- H_k M H_k for symmetric M: p = 2 M v, q = p - (v.p) v, M <- M - v q^T - q v^T.
+    let mut p = vec![0.0; n];
+    for v in &reflectors {
+        for i in 0..n {
+            let row = &m[i * n..(i + 1) * n];
+            p[i] = 2.0 * row.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
+        }
+        let vp: f64 = v.iter().zip(&p).map(|(a, b)| a * b).sum();
+        let q: Vec<f64> = p.iter().zip(v).map(|(pi, vi)| pi - vp * vi).collect();
+        for i in 0..n {
+            let row = &mut m[i * n..(i + 1) * n];
+            let (vi, qi) = (v[i], q[i]);
+            for j in 0..n {
+                row[j] -= vi * q[j] + qi * v[j];
+            }
+        }
+    }
+    let mut g = f.to_vec();
+    for v in &reflectors {
+        reflect(&mut g, v);
+    }
+    // Cholesky of the negated trailing block (row-major, lower triangle in place).
+    let k = n - r;
+    let mut c = vec![0.0; k * k];
+    for i in 0..k {
+        for j in 0..=i {
+            c[i * k + j] = -m[(r + i) * n + (r + j)];
+        }
+    }
+    for j in 0..k {
+        let (row_j, rest) = c[j * k..].split_at_mut(k);
+        let diag = row_j[j] - row_j[..j].iter().map(|a| a * a).sum::<f64>();
+        if !(diag > 0.0) {
+            return None;
+        }
+        let diag = diag.sqrt();
+        row_j[j] = diag;
+        for i in j + 1..k {
+            let row_i = &mut rest[(i - j - 1) * k..(i - j) * k];
+            let s = row_i[j]
+                - row_i[..j]
+                    .iter()
+                    .zip(&row_j[..j])
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>();
+            row_i[j] = s / diag;
+        }
+    }
+    let mut y: Vec<f64> = g[r..].iter().map(|v| -v).collect();
+    for i in 0..k {
+        let mut s = y[i];
+        for t in 0..i {
+            s -= c[i * k + t] * y[t];
+        }
+        y[i] = s / c[i * k + i];
+    }
+    for i in (0..k).rev() {
+        let mut s = y[i];
+        for t in i + 1..k {
+            s -= c[t * k + i] * y[t];
+        }
+        y[i] = s / c[i * k + i];
+    }
+    let mut l = vec![0.0; n];
+    l[r..].copy_from_slice(&y);
+    for v in reflectors.iter().rev() {
+        reflect(&mut l, v);
+    }
+    // d = U^T (f - (A - wI) l), exact because U^T U = I on these points.
+    let mut residual = f.to_vec();
+    for i in 0..n {
+        let mut s = -smoothing * l[i];
+        for j in 0..n {
+            s += (rel[i] - rel[j]).length() * l[j];
+        }
+        residual[i] -= s;
+    }
+    let d: Vec<f64> = (0..r)
+        .map(|kk| (0..n).map(|i| u[i * r + kk] * residual[i]).sum())
+        .collect();
+    if l.iter().chain(&d).any(|v| !v.is_finite()) {
+        return None;
+    }
+    Some((l, d))
 }
 
 /// Wendland C2 `phi(t) = (1 - t)^4 (4t + 1)` and `phi'(t) = -20 t (1 - t)^3` for `0 <= t < 1`.

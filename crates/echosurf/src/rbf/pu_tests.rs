@@ -370,7 +370,13 @@ fn tune_pu_params_dense() {
     let probes = probes_in_bounds(&pts, 10_000, 6);
     let dv = direct.values(&probes);
     let ds = direct.values(&pts);
-    for (leaf, overlap, min_overlap) in [(64usize, 0.5, 1.0), (64, 0.5, 0.5), (64, 0.5, 0.25), (96, 0.5, 0.5), (64, 0.75, 0.5)] {
+    for (leaf, overlap, min_overlap) in [
+        (64usize, 0.5, 1.0),
+        (64, 0.5, 0.5),
+        (64, 0.5, 0.25),
+        (96, 0.5, 0.5),
+        (64, 0.75, 0.5),
+    ] {
         let o = FitOptions {
             pu_leaf_points: leaf,
             pu_overlap: overlap,
@@ -385,5 +391,28 @@ fn tune_pu_params_dense() {
             pts.len(),
             report.mean_patch_points
         );
+    }
+}
+
+#[test]
+fn projected_cholesky_matches_the_dense_saddle_solve() {
+    let (pts, vals) = ultrasound_like_samples(300, 23);
+    let centre = pts.iter().fold(DVec3::ZERO, |a, p| a + *p) / pts.len() as f64;
+    let rel: Vec<DVec3> = pts.iter().map(|p| *p - centre).collect();
+    let flat: Vec<DVec3> = rel.iter().map(|p| DVec3::new(p.x, p.y, 0.0)).collect();
+    for (points, w) in [(&rel, 1.0), (&rel, 0.0), (&flat, 0.5)] {
+        let basis = trend::TrendBasis::new(points);
+        let u = basis.matrix(points);
+        let (l, d) = pu::projected_cholesky_solve(points, &vals, &u, basis.rank(), w)
+            .expect("SPD on the trend's null space");
+        let (l_ref, d_ref) = direct::solve_dense(points, &vals, w, &basis).unwrap();
+        let scale = l_ref.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        // Both are backward-stable solves of a system with condition ~1e6 (300 points, w <= 1).
+        for (a, b) in l.iter().zip(&l_ref) {
+            assert!((a - b).abs() < 1e-7 * scale, "{a} {b}");
+        }
+        for (a, b) in d.iter().zip(&d_ref) {
+            assert!((a - b).abs() < 1e-7 * (1.0 + b.abs()), "{a} {b}");
+        }
     }
 }
