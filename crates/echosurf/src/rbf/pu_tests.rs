@@ -314,43 +314,10 @@ fn pu_handles_tiny_inputs() {
     }
 }
 
-#[test]
-#[ignore]
-fn tune_pu_params() {
-    let (pts, vals) = ultrasound_like_samples(3000, 5);
-    let direct_opts = FitOptions {
-        solver: SolverChoice::Direct,
-        ..pu_options(1.0)
-    };
-    let (direct, _) = fit(&pts, &vals, &direct_opts, &NoProgress).unwrap();
-    let probes = probes_in_bounds(&pts, 10_000, 6);
-    let dv = direct.values(&probes);
-    for (leaf, overlap, min_overlap) in [
-        (64usize, 0.5, 1.0),
-        (64, 0.25, 0.5),
-        (64, 0.25, 1.0),
-        (64, 0.35, 0.5),
-        (100, 0.25, 0.5),
-        (128, 0.25, 0.5),
-    ] {
-        {
-            let o = FitOptions {
-                pu_leaf_points: leaf,
-                pu_overlap: overlap,
-                pu_min_overlap_mm: min_overlap,
-                ..pu_options(1.0)
-            };
-            let (pu, report) = fit(&pts, &vals, &o, &NoProgress).unwrap();
-            let (m, r) = max_rms(&dv, &pu.values(&probes));
-            let (ms, rs) = max_rms(&direct.values(&pts), &pu.values(&pts));
-            eprintln!(
-                "leaf {leaf} overlap {overlap} min {min_overlap}: patch {:.0} probes max {m:.2} rms {r:.2} samples max {ms:.2} rms {rs:.3} t {:.2}",
-                report.mean_patch_points, report.fit_seconds
-            );
-        }
-    }
-}
-
+/// Accuracy/cost trade-off of the partition parameters at realistic density (a dense 4,070-point solve:
+/// too slow for the dev-profile suite). `cargo test --release -p echosurf --lib tune_pu -- --ignored
+/// --nocapture`. Measured (w = 1): leaf 64 / overlap 0.5 / 0.5 mm (the defaults) rms 0.96 max 19 at random
+/// column points; leaf 128 / 0.5 / 1 mm rms 0.55 at ~4x fit cost; overlap 0.25 rms 2.0.
 #[test]
 #[ignore]
 fn tune_pu_params_dense() {
@@ -371,11 +338,11 @@ fn tune_pu_params_dense() {
     let dv = direct.values(&probes);
     let ds = direct.values(&pts);
     for (leaf, overlap, min_overlap) in [
-        (64usize, 0.5, 1.0),
-        (64, 0.5, 0.5),
-        (64, 0.5, 0.25),
-        (96, 0.5, 0.5),
+        (64usize, 0.5, 0.5),
+        (64, 0.5, 1.0),
+        (64, 0.25, 0.5),
         (64, 0.75, 0.5),
+        (128, 0.5, 1.0),
     ] {
         let o = FitOptions {
             pu_leaf_points: leaf,
@@ -386,6 +353,17 @@ fn tune_pu_params_dense() {
         let (pu, report) = fit(&pts, &vals, &o, &NoProgress).unwrap();
         let (m, r) = max_rms(&dv, &pu.values(&probes));
         let (ms, rs) = max_rms(&ds, &pu.values(&pts));
+        if (leaf, overlap, min_overlap)
+            == (
+                FitOptions::default().pu_leaf_points,
+                FitOptions::default().pu_overlap,
+                FitOptions::default().pu_min_overlap_mm,
+            )
+        {
+            // The defaults stay within the fitting accuracy (2 grey levels) in rms, and well below the
+            // speckle at the samples.
+            assert!(r < 1.5 && rs < 1.0, "{r} {rs}");
+        }
         eprintln!(
             "dense {} pts: leaf {leaf} overlap {overlap} min {min_overlap}: patch {:.0} box max {m:.2} rms {r:.3} samples max {ms:.2} rms {rs:.3}",
             pts.len(),
