@@ -313,7 +313,7 @@ pub(crate) fn projected_cholesky_solve(
         let alpha = if x[k] >= 0.0 { -norm } else { norm };
         v[k] -= alpha;
         let vnorm = v.iter().map(|a| a * a).sum::<f64>().sqrt();
-        if !(vnorm > 0.0) {
+        if vnorm.is_nan() || vnorm <= 0.0 {
             return None;
         }
         v.iter_mut().for_each(|a| *a /= vnorm);
@@ -363,7 +363,7 @@ pub(crate) fn projected_cholesky_solve(
     for j in 0..k {
         let (row_j, rest) = c[j * k..].split_at_mut(k);
         let diag = row_j[j] - row_j[..j].iter().map(|a| a * a).sum::<f64>();
-        if !(diag > 0.0) {
+        if diag.is_nan() || diag <= 0.0 {
             return None;
         }
         let diag = diag.sqrt();
