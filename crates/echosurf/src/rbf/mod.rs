@@ -97,9 +97,9 @@ impl Default for FitOptions {
             solver: SolverChoice::Auto,
             direct_max_points: 2000,
             max_iterations: 1000,
-            pu_leaf_points: 100,
+            pu_leaf_points: 64,
             pu_overlap: 0.5,
-            pu_min_overlap_mm: 1.0,
+            pu_min_overlap_mm: 0.5,
         }
     }
 }
@@ -481,5 +481,7 @@ fn greedy_reduction(
     }
 }
 
+#[cfg(test)]
+mod pu_tests;
 #[cfg(test)]
 mod tests;

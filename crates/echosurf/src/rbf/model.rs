@@ -36,7 +36,7 @@ pub struct RbfModel {
 #[derive(Clone)]
 enum ModelKind {
     Global(GlobalModel),
-    PartitionOfUnity(Box<PuModel>),
+    PartitionOfUnity(PuModel),
 }
 
 /// The global spline `s(x) = c0 + c.(x - origin) + sum_i l_i |x - x_i|`.
@@ -125,7 +125,7 @@ impl RbfModel {
 
     pub(crate) fn from_partition_of_unity(model: PuModel) -> RbfModel {
         RbfModel {
-            kind: ModelKind::PartitionOfUnity(Box::new(model)),
+            kind: ModelKind::PartitionOfUnity(model),
         }
     }
 
