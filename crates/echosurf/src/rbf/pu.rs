@@ -525,29 +525,6 @@ impl PuModel {
                 top += 2;
             }
         }
-<<<<<<< HEAD
-        if out.is_empty() {
-            // Only for damaged models (a valid partition covers the root box): nearest support, weight 1.
-            let mut best = (f64::INFINITY, 0u32);
-            for (j, (c, h)) in self
-                .support_centre
-                .iter()
-                .zip(&self.support_half)
-                .enumerate()
-            {
-                let t = ((xc - *c).abs() / *h).max_element();
-                if t < best.0 {
-                    best = (t, j as u32);
-                }
-            }
-            out.push(WeightTerm {
-                patch: best.1,
-                weight: 1.0,
-                gradient: DVec3::ZERO,
-            });
-        }
-=======
->>>>>>> pu
     }
 
     fn total_weight(&self, x: DVec3) -> f64 {
