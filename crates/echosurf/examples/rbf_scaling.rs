@@ -1,6 +1,7 @@
 //! Fit/evaluate timings on ultrasound-like samples: `cargo run --release --example rbf_scaling -- 10000 100000`.
+//! Environment: `SOLVER` = auto (default) | fast | pu | direct, `W`, `ACC`, `EPS`, `LEAF`, `OVERLAP`, `MINOV`.
 
-use echosurf::rbf::{FitOptions, bench_fit_scaling};
+use echosurf::rbf::{FitOptions, SolverChoice, bench_fit_scaling};
 
 fn main() -> echosurf::Result<()> {
     let sizes: Vec<usize> = std::env::args()
@@ -25,6 +26,24 @@ fn main() -> echosurf::Result<()> {
             .ok()
             .and_then(|v| v.parse().ok())
             .unwrap_or(1e-4),
+        solver: match std::env::var("SOLVER").as_deref() {
+            Ok("fast") => SolverChoice::Fast,
+            Ok("pu") => SolverChoice::PartitionOfUnity,
+            Ok("direct") => SolverChoice::Direct,
+            _ => SolverChoice::Auto,
+        },
+        pu_leaf_points: std::env::var("LEAF")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(FitOptions::default().pu_leaf_points),
+        pu_overlap: std::env::var("OVERLAP")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(FitOptions::default().pu_overlap),
+        pu_min_overlap_mm: std::env::var("MINOV")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(FitOptions::default().pu_min_overlap_mm),
         ..FitOptions::default()
     };
     println!("threads {}", rayon::current_num_threads());

@@ -53,6 +53,11 @@ pub struct ScalingRow {
     pub fit_seconds: f64,
     pub iterations: usize,
     pub max_residual: f64,
+    pub rms_residual: f64,
+    pub solver: super::SolverChoice,
+    /// Partition-of-unity patches (0 for global solvers).
+    pub patches: usize,
+    pub mean_patch_points: f64,
     /// Time to evaluate values and gradients at `samples` fresh points.
     pub eval_seconds: f64,
     pub solver_bytes_per_sample: f64,
@@ -78,6 +83,10 @@ pub fn bench_fit_scaling(
             fit_seconds: report.fit_seconds,
             iterations: report.iterations,
             max_residual: report.max_residual,
+            rms_residual: report.rms_residual,
+            solver: report.solver,
+            patches: report.patches,
+            mean_patch_points: report.mean_patch_points,
             eval_seconds,
             solver_bytes_per_sample: report.solver_bytes as f64 / n as f64,
         });

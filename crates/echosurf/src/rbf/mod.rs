@@ -3,8 +3,10 @@
 //! Fitting solves the smoothing-spline system `(A - wI) l + P c = f, P^T l = 0` (`A_ij = |x_i - x_j|`,
 //! P the linear trend; ALGORITHMS.md §1: with R(r) = r the smoothing enters with a minus sign so that
 //! `-(A - wI)` stays positive definite on `P^T l = 0`). The residual at a sample is `f_i - s(x_i) = -w l_i`.
-//! Small problems use a dense LU (the reference); large ones the treecode product inside preconditioned
-//! GMRES ([`fast`]). Near-duplicate samples are merged first; coplanar or tiny inputs get a reduced trend.
+//! Small problems use a dense LU (the reference). Large ones use, by default, the partition-of-unity
+//! method ([`pu`]: local dense fits on overlapping k-d tree patches blended by Wendland weights; O(N)),
+//! or on request the global spline via the treecode product inside preconditioned GMRES ([`fast`]).
+//! Near-duplicate samples are merged first; coplanar or tiny inputs get a reduced trend.
 
 // Dense linear algebra reads best in index notation.
 #![allow(clippy::needless_range_loop)]
@@ -14,6 +16,7 @@ mod direct;
 mod fast;
 mod merge;
 mod model;
+mod pu;
 mod tree;
 mod trend;
 
@@ -27,6 +30,7 @@ use rand_chacha::ChaCha8Rng;
 pub use bench_data::{ScalingRow, bench_fit_scaling, ultrasound_like_samples};
 pub use merge::merge_near_duplicates;
 pub use model::RbfModel;
+pub use pu::{MAX_PATCH_FACTOR, MIN_PATCH_POINTS};
 
 use crate::progress::Progress;
 use crate::{Error, Result};
@@ -34,13 +38,16 @@ use crate::{Error, Result};
 /// Which linear solver [`fit`] uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 pub enum SolverChoice {
-    /// Dense below [`FitOptions::direct_max_points`] points, fast above.
+    /// Dense below [`FitOptions::direct_max_points`] merged points, partition of unity above.
     #[default]
     Auto,
     /// Dense LU, O(N^2) memory, O(N^3) time: the reference.
     Direct,
-    /// Treecode + Schwarz-preconditioned GMRES.
+    /// The *global* spline: treecode + Schwarz-preconditioned GMRES (accurate but slow at 100k+).
     Fast,
+    /// Partition of unity: local dense fits on overlapping patches blended by Wendland weights
+    /// (O(N), parallel); not the single global spline, but agrees with it to within the local fit error.
+    PartitionOfUnity,
 }
 
 /// Parameters of [`fit`].
@@ -69,6 +76,12 @@ pub struct FitOptions {
     pub direct_max_points: usize,
     /// Krylov iteration budget of the fast solver.
     pub max_iterations: usize,
+    /// Partition of unity: samples per k-d tree leaf cell (one local fit per leaf).
+    pub pu_leaf_points: usize,
+    /// Partition of unity: support expansion per side, relative to the leaf cell's half-size.
+    pub pu_overlap: f64,
+    /// Partition of unity: minimum support expansion per side (mm).
+    pub pu_min_overlap_mm: f64,
 }
 
 impl Default for FitOptions {
@@ -84,6 +97,9 @@ impl Default for FitOptions {
             solver: SolverChoice::Auto,
             direct_max_points: 2000,
             max_iterations: 1000,
+            pu_leaf_points: 64,
+            pu_overlap: 0.5,
+            pu_min_overlap_mm: 0.5,
         }
     }
 }
@@ -94,20 +110,30 @@ pub struct FitReport {
     pub input_points: usize,
     /// Samples after near-duplicate merging.
     pub merged_points: usize,
+    /// Centres of the global spline; for partition of unity the total of local centres (sum of patch
+    /// sizes, so samples in overlaps count once per patch).
     pub centres: usize,
+    /// Partition-of-unity patches (0 for the global solvers).
+    pub patches: usize,
+    /// Mean samples per partition-of-unity patch (0 for the global solvers).
+    pub mean_patch_points: f64,
     /// Krylov iterations summed over all solves (0 for the direct solver).
     pub iterations: usize,
     /// Greedy reduction rounds (0 without reduction).
     pub reduction_rounds: usize,
-    /// Largest system residual `|f_i - s(x_i) - w l_i|` over the centres (grey levels).
+    /// Largest system residual `|f_i - s(x_i) - w l_i|` over the centres (grey levels). Partition of unity
+    /// has no single system: there it is the measured data misfit `|f_i - s(x_i)|` of the blended model
+    /// over all (merged) samples, which includes the smoothing misfit.
     pub max_residual: f64,
     pub rms_residual: f64,
-    /// Number of linear-trend directions kept (4 normally; 3 for coplanar samples, ...).
+    /// Number of linear-trend directions kept (4 normally; 3 for coplanar samples, ...); for partition of
+    /// unity the smallest over the local fits.
     pub trend_rank: usize,
     pub solver: SolverChoice,
     pub smoothing: f64,
     pub fit_seconds: f64,
-    /// Bytes held by the largest solver structure (treecode, lists, preconditioner, Krylov basis).
+    /// Bytes held by the largest solver structure (treecode, lists, preconditioner, Krylov basis; for
+    /// partition of unity the model plus one dense local system per thread).
     pub solver_bytes: usize,
 }
 
@@ -126,6 +152,8 @@ pub fn fit(
         input_points: points.len(),
         merged_points: pts.len(),
         centres: 0,
+        patches: 0,
+        mean_patch_points: 0.0,
         iterations: 0,
         reduction_rounds: 0,
         max_residual: 0.0,
@@ -143,7 +171,11 @@ pub fn fit(
         absorb(&mut report, &sub);
         sub.model
     };
-    report.centres = model.centres.len();
+    report.centres = model.coefficients().len();
+    report.patches = model.patches();
+    if report.patches > 0 {
+        report.mean_patch_points = report.centres as f64 / report.patches as f64;
+    }
     report.fit_seconds = start.elapsed().as_secs_f64();
     Ok((model, report))
 }
@@ -188,6 +220,24 @@ fn validate(points: &[DVec3], values: &[f64], options: &FitOptions) -> Result<()
     if !(options.merge_distance_mm >= 0.0 && options.merge_distance_mm.is_finite()) {
         return Err(bad("merge distance", options.merge_distance_mm));
     }
+    if options.pu_leaf_points < 1 || options.pu_leaf_points > 100_000 {
+        return Err(bad(
+            "partition-of-unity leaf size (samples, 1..=100000)",
+            options.pu_leaf_points as f64,
+        ));
+    }
+    if !(options.pu_overlap > 0.0 && options.pu_overlap <= 10.0) {
+        return Err(bad(
+            "partition-of-unity overlap (relative, in (0, 10])",
+            options.pu_overlap,
+        ));
+    }
+    if !(options.pu_min_overlap_mm > 0.0 && options.pu_min_overlap_mm.is_finite()) {
+        return Err(bad(
+            "partition-of-unity minimum overlap (mm, > 0)",
+            options.pu_min_overlap_mm,
+        ));
+    }
     if options.max_centres == Some(0) {
         return Err(Error::InvalidInput(
             "RBF fit: max centres must be at least 1".into(),
@@ -223,13 +273,16 @@ fn solve_subset(
     initial: Option<&[f64]>,
     progress: &dyn Progress,
 ) -> Result<SubsetFit> {
-    let basis = trend::TrendBasis::new(pts);
     let n = pts.len();
     let solver = match options.solver {
         SolverChoice::Auto if n <= options.direct_max_points => SolverChoice::Direct,
-        SolverChoice::Auto => SolverChoice::Fast,
+        SolverChoice::Auto => SolverChoice::PartitionOfUnity,
         s => s,
     };
+    if solver == SolverChoice::PartitionOfUnity {
+        return solve_partition_of_unity(pts, vals, options, progress);
+    }
+    let basis = trend::TrendBasis::new(pts);
     let (coefficients, d, iterations, max_residual, rms_residual, solver_bytes) =
         if n <= basis.rank() {
             // No room for RBF terms: the (reduced) trend interpolates.
@@ -283,6 +336,49 @@ fn solve_subset(
         rms_residual,
         trend_rank: basis.rank(),
         solver,
+        solver_bytes,
+    })
+}
+
+fn solve_partition_of_unity(
+    pts: &[DVec3],
+    vals: &[f64],
+    options: &FitOptions,
+    progress: &dyn Progress,
+) -> Result<SubsetFit> {
+    progress.start("fit: partition of unity", 1);
+    let params = pu::PuParams {
+        leaf_points: options.pu_leaf_points,
+        overlap: options.pu_overlap,
+        min_overlap_mm: options.pu_min_overlap_mm,
+    };
+    let (pu_model, stats) =
+        pu::fit_pu(pts, vals, options.smoothing, options.eval_accuracy, params)?;
+    progress.finish();
+    let size = stats.max_patch_points + 4;
+    let solver_bytes =
+        pu_model.memory_bytes() + rayon::current_num_threads() * size * (size + 1) * 8;
+    let model = RbfModel::from_partition_of_unity(pu_model);
+    // No global system: report the measured misfit of the blended model at every sample.
+    let fitted = model.values(pts);
+    let (mut max_r, mut sum_sq) = (0.0f64, 0.0);
+    for (s, f) in fitted.iter().zip(vals) {
+        let e = f - s;
+        max_r = max_r.max(e.abs());
+        sum_sq += e * e;
+    }
+    if !max_r.is_finite() {
+        return Err(Error::Numerical(
+            "partition-of-unity fit produced non-finite values".into(),
+        ));
+    }
+    Ok(SubsetFit {
+        model,
+        iterations: 0,
+        max_residual: max_r,
+        rms_residual: (sum_sq / pts.len() as f64).sqrt(),
+        trend_rank: stats.min_trend_rank,
+        solver: SolverChoice::PartitionOfUnity,
         solver_bytes,
     })
 }
@@ -359,7 +455,7 @@ fn greedy_reduction(
         // Non-centres must fit as well as the centres do (accuracy plus the smoothing misfit w|l|).
         let smoothing_misfit = sub
             .model
-            .coefficients
+            .coefficients()
             .iter()
             .fold(0.0f64, |m, l| m.max((options.smoothing * l).abs()));
         let threshold = options.accuracy + smoothing_misfit;
@@ -380,10 +476,12 @@ fn greedy_reduction(
         for &(_, i) in bad.iter().take(batch) {
             is_centre[i] = true;
         }
-        previous = Some((selected, sub.model.coefficients.clone()));
+        previous = Some((selected, sub.model.coefficients().to_vec()));
         selected = (0..n).filter(|&i| is_centre[i]).collect();
     }
 }
 
+#[cfg(test)]
+mod pu_tests;
 #[cfg(test)]
 mod tests;

@@ -1,8 +1,11 @@
-//! The fitted model, its fast evaluation, and the `.esrbf` file format.
+//! The fitted model (a global spline or a partition-of-unity blend), its fast evaluation, and the
+//! `.esrbf` file format.
 //!
-//! `.esrbf` (little-endian): magic `ESRBF\r\n\x1a`, u32 version (1), u64 centre count n, f64 smoothing,
-//! f64 eval_accuracy, f64 origin[3], f64 c0, f64 c[3], then n x (f64 x, y, z), n x f64 coefficients, then
-//! a u64 FNV-1a hash of everything before it. The size is checked against n before anything is allocated.
+//! `.esrbf` (little-endian): magic `ESRBF\r\n\x1a`, u32 version, body, then a u64 FNV-1a hash of
+//! everything before it. Version 1 (global spline): u64 centre count n, f64 smoothing, f64 eval_accuracy,
+//! f64 origin[3], f64 c0, f64 c[3], then n x (f64 x, y, z), n x f64 coefficients. Version 2
+//! (partition of unity): the body of `PuModel::encode`. Global models are still written as version 1.
+//! Every size is checked against the file length before anything is allocated.
 
 use std::io::Write;
 use std::path::Path;
@@ -11,18 +14,33 @@ use std::sync::OnceLock;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::pu::PuModel;
 use super::tree::{Tree, Treecode, TreecodeParams, sum_r, sum_r_grad};
 use crate::error::FormatProblem;
 use crate::{Error, Result};
 
 const MAGIC: &[u8; 8] = b"ESRBF\r\n\x1a";
 const VERSION: u32 = 1;
+const PU_VERSION: u32 = 2;
 const HEADER_BYTES: usize = 8 + 4 + 8 + 8 * 9;
 /// Below this many kernel evaluations a direct sum is cheaper than building target trees.
 const DIRECT_EVALUATION_LIMIT: usize = 4_000_000;
 
-/// `s(x) = c0 + c.(x - origin) + sum_i l_i |x - x_i|`: a fitted biharmonic spline with linear trend.
+/// A fitted field: either the global biharmonic spline `s(x) = c0 + c.(x - origin) + sum_i l_i |x - x_i|`
+/// or a partition-of-unity blend of local splines of that form (see `rbf::pu`).
+#[derive(Clone)]
 pub struct RbfModel {
+    kind: ModelKind,
+}
+
+#[derive(Clone)]
+enum ModelKind {
+    Global(GlobalModel),
+    PartitionOfUnity(PuModel),
+}
+
+/// The global spline `s(x) = c0 + c.(x - origin) + sum_i l_i |x - x_i|`.
+pub(crate) struct GlobalModel {
     pub(crate) centres: Vec<DVec3>,
     pub(crate) coefficients: Vec<f64>,
     pub(crate) origin: DVec3,
@@ -35,6 +53,21 @@ pub struct RbfModel {
 
 impl std::fmt::Debug for RbfModel {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match &self.kind {
+            ModelKind::Global(g) => g.fmt(f),
+            ModelKind::PartitionOfUnity(pu) => f
+                .debug_struct("RbfModel(partition of unity)")
+                .field("points", &pu.points.len())
+                .field("patches", &pu.patches())
+                .field("local_centres", &pu.coefficients.len())
+                .field("smoothing", &pu.smoothing)
+                .finish(),
+        }
+    }
+}
+
+impl std::fmt::Debug for GlobalModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("RbfModel")
             .field("centres", &self.centres.len())
             .field("origin", &self.origin)
@@ -46,9 +79,9 @@ impl std::fmt::Debug for RbfModel {
     }
 }
 
-impl Clone for RbfModel {
+impl Clone for GlobalModel {
     fn clone(&self) -> Self {
-        RbfModel::new(
+        GlobalModel::new(
             self.centres.clone(),
             self.coefficients.clone(),
             self.origin,
@@ -78,6 +111,203 @@ impl RbfModel {
         eval_accuracy: f64,
     ) -> RbfModel {
         RbfModel {
+            kind: ModelKind::Global(GlobalModel::new(
+                centres,
+                coefficients,
+                origin,
+                constant,
+                linear,
+                smoothing,
+                eval_accuracy,
+            )),
+        }
+    }
+
+    pub(crate) fn from_partition_of_unity(model: PuModel) -> RbfModel {
+        RbfModel {
+            kind: ModelKind::PartitionOfUnity(model),
+        }
+    }
+
+    #[cfg(test)]
+    pub(crate) fn partition_of_unity(&self) -> Option<&PuModel> {
+        match &self.kind {
+            ModelKind::PartitionOfUnity(pu) => Some(pu),
+            ModelKind::Global(_) => None,
+        }
+    }
+
+    /// Whether this is a partition-of-unity blend of local fits (false: one global spline).
+    pub fn is_partition_of_unity(&self) -> bool {
+        matches!(self.kind, ModelKind::PartitionOfUnity(_))
+    }
+
+    /// Number of partition-of-unity patches (0 for a global spline).
+    pub fn patches(&self) -> usize {
+        match &self.kind {
+            ModelKind::Global(_) => 0,
+            ModelKind::PartitionOfUnity(pu) => pu.patches(),
+        }
+    }
+
+    /// The centres of a global spline; for a partition-of-unity model, the (merged) samples it was
+    /// fitted to (each is a centre of every local fit whose patch contains it).
+    pub fn centres(&self) -> &[DVec3] {
+        match &self.kind {
+            ModelKind::Global(g) => &g.centres,
+            ModelKind::PartitionOfUnity(pu) => &pu.points,
+        }
+    }
+
+    /// The RBF coefficients l_i, one per centre of a global spline; for a partition-of-unity model the
+    /// local coefficients of all patches concatenated in patch order (so not aligned with [`Self::centres`]).
+    pub fn coefficients(&self) -> &[f64] {
+        match &self.kind {
+            ModelKind::Global(g) => &g.coefficients,
+            ModelKind::PartitionOfUnity(pu) => &pu.coefficients,
+        }
+    }
+
+    /// The trend `(c0, c, origin)` of `c0 + c.(x - origin)`; a partition-of-unity model has only local
+    /// trends and returns zeros.
+    pub fn trend(&self) -> (f64, DVec3, DVec3) {
+        match &self.kind {
+            ModelKind::Global(g) => (g.constant, g.linear, g.origin),
+            ModelKind::PartitionOfUnity(_) => (0.0, DVec3::ZERO, DVec3::ZERO),
+        }
+    }
+
+    /// Smoothing weight w (mm) the model was fitted with.
+    pub fn smoothing(&self) -> f64 {
+        match &self.kind {
+            ModelKind::Global(g) => g.smoothing,
+            ModelKind::PartitionOfUnity(pu) => pu.smoothing,
+        }
+    }
+
+    /// Relative accuracy of the fast evaluator (global splines; stored but unused by partition of unity,
+    /// whose evaluation is exact).
+    pub fn eval_accuracy(&self) -> f64 {
+        match &self.kind {
+            ModelKind::Global(g) => g.eval_accuracy,
+            ModelKind::PartitionOfUnity(pu) => pu.eval_accuracy,
+        }
+    }
+
+    /// Value at one point (global: exact direct sum over all centres).
+    pub fn value(&self, p: DVec3) -> f64 {
+        match &self.kind {
+            ModelKind::Global(g) => g.value(p),
+            ModelKind::PartitionOfUnity(pu) => pu.value(p),
+        }
+    }
+
+    /// Values at many points (rayon; treecode when a global problem is large).
+    pub fn values(&self, points: &[DVec3]) -> Vec<f64> {
+        let mut out = vec![0.0; points.len()];
+        self.evaluate(points, &mut out, None);
+        out
+    }
+
+    /// Values and gradients at many points.
+    pub fn values_and_gradients(&self, points: &[DVec3]) -> (Vec<f64>, Vec<DVec3>) {
+        let mut values = vec![0.0; points.len()];
+        let mut gradients = vec![DVec3::ZERO; points.len()];
+        self.evaluate(points, &mut values, Some(&mut gradients));
+        (values, gradients)
+    }
+
+    fn evaluate(&self, points: &[DVec3], values: &mut [f64], gradients: Option<&mut [DVec3]>) {
+        match &self.kind {
+            ModelKind::Global(g) => g.evaluate(points, values, gradients),
+            ModelKind::PartitionOfUnity(pu) => pu.evaluate(points, values, gradients),
+        }
+    }
+
+    /// Writes the model atomically as `.esrbf` (version 1 for global splines, 2 for partition of unity).
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let bytes = match &self.kind {
+            ModelKind::Global(g) => g.encode(),
+            ModelKind::PartitionOfUnity(pu) => {
+                let mut bytes =
+                    Vec::with_capacity(12 + PuModel::ENCODED_HEADER_BYTES + pu.memory_bytes() + 8);
+                bytes.extend_from_slice(MAGIC);
+                bytes.extend_from_slice(&PU_VERSION.to_le_bytes());
+                pu.encode(&mut bytes);
+                let hash = fnv1a(&bytes);
+                bytes.extend_from_slice(&hash.to_le_bytes());
+                bytes
+            }
+        };
+        crate::io::atomic::write_atomic(path, |w| w.write_all(&bytes))
+    }
+
+    /// Reads a `.esrbf` model; every size is checked before allocation and every number must be finite.
+    pub fn load(path: &Path) -> Result<RbfModel> {
+        let bad = |problem, message: String| Error::format(path, problem, message);
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        if bytes.len() < 8 || &bytes[..8] != MAGIC {
+            return Err(bad(
+                FormatProblem::Unsupported,
+                "not an echosurf RBF model (.esrbf magic missing)".into(),
+            ));
+        }
+        if bytes.len() < 12 {
+            return Err(bad(
+                FormatProblem::Truncated,
+                "file ends inside the header".into(),
+            ));
+        }
+        let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+        match version {
+            VERSION => Ok(RbfModel {
+                kind: ModelKind::Global(GlobalModel::decode(&bytes, path)?),
+            }),
+            PU_VERSION => {
+                if bytes.len() < 12 + 8 {
+                    return Err(bad(
+                        FormatProblem::Truncated,
+                        "file ends inside the header".into(),
+                    ));
+                }
+                let body = bytes.len() - 8;
+                let stored = u64::from_le_bytes(bytes[body..].try_into().expect("8 bytes"));
+                // Sizes first (a truncated file is reported as such), then the checksum.
+                let parsed = PuModel::decode(&bytes[12..body]);
+                if let Err((
+                    problem @ (FormatProblem::Truncated | FormatProblem::SizeMismatch),
+                    m,
+                )) = &parsed
+                {
+                    return Err(bad(*problem, m.clone()));
+                }
+                if fnv1a(&bytes[..body]) != stored {
+                    return Err(bad(FormatProblem::Corrupt, "checksum mismatch".into()));
+                }
+                let model = parsed.map_err(|(problem, message)| bad(problem, message))?;
+                Ok(RbfModel::from_partition_of_unity(model))
+            }
+            _ => Err(bad(
+                FormatProblem::Unsupported,
+                format!(
+                    "model version {version}, this build reads versions {VERSION} and {PU_VERSION}"
+                ),
+            )),
+        }
+    }
+}
+
+impl GlobalModel {
+    fn new(
+        centres: Vec<DVec3>,
+        coefficients: Vec<f64>,
+        origin: DVec3,
+        constant: f64,
+        linear: DVec3,
+        smoothing: f64,
+        eval_accuracy: f64,
+    ) -> GlobalModel {
+        GlobalModel {
             centres,
             coefficients,
             origin,
@@ -87,30 +317,6 @@ impl RbfModel {
             eval_accuracy,
             fast: OnceLock::new(),
         }
-    }
-
-    pub fn centres(&self) -> &[DVec3] {
-        &self.centres
-    }
-
-    /// The RBF coefficients l_i, one per centre.
-    pub fn coefficients(&self) -> &[f64] {
-        &self.coefficients
-    }
-
-    /// The trend `(c0, c, origin)` of `c0 + c.(x - origin)`.
-    pub fn trend(&self) -> (f64, DVec3, DVec3) {
-        (self.constant, self.linear, self.origin)
-    }
-
-    /// Smoothing weight w (mm) the model was fitted with.
-    pub fn smoothing(&self) -> f64 {
-        self.smoothing
-    }
-
-    /// Relative accuracy of the fast evaluator.
-    pub fn eval_accuracy(&self) -> f64 {
-        self.eval_accuracy
     }
 
     fn trend_at(&self, p: DVec3) -> f64 {
@@ -124,21 +330,6 @@ impl RbfModel {
             s += l * (p - *c).length();
         }
         self.trend_at(p) + s
-    }
-
-    /// Values at many points (rayon; treecode when the problem is large).
-    pub fn values(&self, points: &[DVec3]) -> Vec<f64> {
-        let mut out = vec![0.0; points.len()];
-        self.evaluate(points, &mut out, None);
-        out
-    }
-
-    /// Values and gradients at many points.
-    pub fn values_and_gradients(&self, points: &[DVec3]) -> (Vec<f64>, Vec<DVec3>) {
-        let mut values = vec![0.0; points.len()];
-        let mut gradients = vec![DVec3::ZERO; points.len()];
-        self.evaluate(points, &mut values, Some(&mut gradients));
-        (values, gradients)
     }
 
     fn evaluate(&self, points: &[DVec3], values: &mut [f64], gradients: Option<&mut [DVec3]>) {
@@ -219,8 +410,8 @@ impl RbfModel {
         }
     }
 
-    /// Writes the model atomically as `.esrbf`.
-    pub fn save(&self, path: &Path) -> Result<()> {
+    /// The complete version-1 file.
+    fn encode(&self) -> Vec<u8> {
         let mut bytes = Vec::with_capacity(HEADER_BYTES + self.centres.len() * 32 + 8);
         bytes.extend_from_slice(MAGIC);
         bytes.extend_from_slice(&VERSION.to_le_bytes());
@@ -248,19 +439,12 @@ impl RbfModel {
         }
         let hash = fnv1a(&bytes);
         bytes.extend_from_slice(&hash.to_le_bytes());
-        crate::io::atomic::write_atomic(path, |w| w.write_all(&bytes))
+        bytes
     }
 
-    /// Reads a `.esrbf` model; every size is checked before allocation and every number must be finite.
-    pub fn load(path: &Path) -> Result<RbfModel> {
+    /// Parses a complete version-1 file (magic already checked).
+    fn decode(bytes: &[u8], path: &Path) -> Result<GlobalModel> {
         let bad = |problem, message: String| Error::format(path, problem, message);
-        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-        if bytes.len() < 8 || &bytes[..8] != MAGIC {
-            return Err(bad(
-                FormatProblem::Unsupported,
-                "not an echosurf RBF model (.esrbf magic missing)".into(),
-            ));
-        }
         if bytes.len() < HEADER_BYTES {
             return Err(bad(
                 FormatProblem::Truncated,
@@ -327,7 +511,7 @@ impl RbfModel {
                 "non-finite centre or coefficient".into(),
             ));
         }
-        Ok(RbfModel::new(
+        Ok(GlobalModel::new(
             centres,
             coefficients,
             DVec3::new(header[2], header[3], header[4]),
