@@ -253,9 +253,7 @@ pub fn write_preview(
     Ok(())
 }
 
-fn print_summary(args: &Args, output: &ExtractOutput) {
-    let r = &output.report;
-    let c = &r.counts;
+fn print_sample_counts(c: &pipeline::StageCounts) {
     println!(
         "{} of {} frames used; kept {} of {} pixels ({:.1}%); {} samples -> {} centres",
         c.frames_used,
@@ -266,6 +264,19 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
         c.samples,
         c.centres
     );
+}
+
+fn print_summary(args: &Args, output: &ExtractOutput) {
+    let r = &output.report;
+    let c = &r.counts;
+    if r.voxel.is_some() {
+        println!(
+            "{} of {} frames used; all {} pixels (inside the clip rectangle) go into the volume",
+            c.frames_used, c.frames, c.pixels
+        );
+    } else {
+        print_sample_counts(c);
+    }
     if let Some(l) = r.levels {
         println!(
             "echo levels: background {:.1}, boundary {:.1}{}",
