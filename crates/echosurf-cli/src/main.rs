@@ -31,7 +31,7 @@ enum Command {
     /// Extract iso-surfaces of a fitted RBF model.
     Surface(cmd::surface::Args),
     /// The whole pipeline: sequence -> mesh.
-    Extract(cmd::extract::Args),
+    Extract(Box<cmd::extract::Args>),
     /// Write the samples the fit would see as a point cloud.
     Sample(cmd::sample::Args),
     /// Score a mesh against a ground-truth mesh.
@@ -55,7 +55,7 @@ fn main() -> ExitCode {
         Command::Fit(a) => cmd::fit::run(a),
         Command::Eval(a) => cmd::eval::run(a),
         Command::Surface(a) => cmd::surface::run(a),
-        Command::Extract(a) => cmd::extract::run(a),
+        Command::Extract(a) => cmd::extract::run(*a),
         Command::Sample(a) => cmd::sample::run(a),
         Command::Compare(a) => cmd::compare::run(a),
         Command::Render(a) => cmd::render::run(a),

@@ -4,7 +4,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use echosurf::io::{self, ReferenceChoice};
-use echosurf::pipeline::{self, ExtractOptions, ExtractOutput, IsoLevels};
+use echosurf::pipeline::{
+    self, ExtractOptions, ExtractOutput, IsoLevels, Method, VoxelRouteOptions,
+};
 use echosurf::rbf::FitOptions;
 use echosurf::render::{RenderOptions, render_views, write_png};
 use echosurf::segment::InitialBand;
@@ -24,6 +26,19 @@ pub struct Args {
     /// Output mesh (.ply, .stl or .obj). With several levels, `_iso<LEVEL>` is added before the extension.
     #[arg(long)]
     pub out: PathBuf,
+    /// Route: `rbf` (segment, fit one RBF to the kept pixels, surface it) or `voxel` (PLUS-like volume of
+    /// all clipped pixels with the config's VolumeReconstruction settings, Gaussian, marching cubes).
+    #[arg(long, default_value = "rbf")]
+    pub method: String,
+    /// Voxel route: sigma of the Gaussian pre-smoothing in mm (0 = none).
+    #[arg(long, default_value_t = 1.0)]
+    pub voxel_smoothing: f64,
+    /// Voxel route: grid spacing in mm (default: the config's OutputSpacing, else --resolution).
+    #[arg(long)]
+    pub voxel_spacing: Option<f64>,
+    /// Voxel route: refuse grids needing more memory than this many MB.
+    #[arg(long)]
+    pub voxel_memory_mb: Option<u64>,
     /// Random decimation target for the samples handed to the fit.
     #[arg(long, default_value_t = 100_000)]
     pub max_samples: usize,
@@ -103,6 +118,29 @@ fn format_level(level: f64) -> String {
     }
 }
 
+/// `--method` and the voxel route's options.
+fn parse_method(args: &Args) -> anyhow::Result<Method> {
+    match args.method.to_ascii_lowercase().as_str() {
+        "rbf" => Ok(Method::Rbf),
+        "voxel" => {
+            if !(args.voxel_smoothing.is_finite() && args.voxel_smoothing >= 0.0) {
+                anyhow::bail!("--voxel-smoothing must be a non-negative number of mm");
+            }
+            if let Some(s) = args.voxel_spacing
+                && !(s.is_finite() && s > 0.0)
+            {
+                anyhow::bail!("--voxel-spacing must be a positive number of mm");
+            }
+            Ok(Method::Voxel(VoxelRouteOptions {
+                spacing_mm: args.voxel_spacing,
+                smoothing_sigma_mm: args.voxel_smoothing,
+                memory_budget_bytes: args.voxel_memory_mb.map(|mb| mb.saturating_mul(1 << 20)),
+            }))
+        }
+        other => anyhow::bail!("--method {other}: expected rbf or voxel"),
+    }
+}
+
 fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
     Ok(match text.to_ascii_lowercase().as_str() {
         "auto" => ReferenceChoice::Auto,
@@ -124,8 +162,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(path) => InitialBand::load(path, sequence.width, sequence.height)?,
         None => InitialBand::Auto,
     };
+    let method = parse_method(&args)?;
     let defaults = FitOptions::default();
     let options = ExtractOptions {
+        method,
         iso,
         init,
         segment: seg.options(),
@@ -160,7 +200,10 @@ pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> 
         io::write_mesh(&mesh_path(&args.out, s.level, several), &s.mesh)?;
     }
     if let Some(path) = &args.model {
-        output.model.save(path)?;
+        match &output.model {
+            Some(model) => model.save(path)?,
+            None => anyhow::bail!("--model: the voxel route fits no model"),
+        }
     }
     if let Some(path) = &args.samples {
         io::write_point_cloud(path, &output.samples.to_point_cloud())?;
@@ -214,9 +257,7 @@ pub fn write_preview(
     Ok(())
 }
 
-fn print_summary(args: &Args, output: &ExtractOutput) {
-    let r = &output.report;
-    let c = &r.counts;
+fn print_sample_counts(c: &pipeline::StageCounts) {
     println!(
         "{} of {} frames used; kept {} of {} pixels ({:.1}%); {} samples -> {} centres",
         c.frames_used,
@@ -227,6 +268,19 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
         c.samples,
         c.centres
     );
+}
+
+fn print_summary(args: &Args, output: &ExtractOutput) {
+    let r = &output.report;
+    let c = &r.counts;
+    if r.voxel.is_some() {
+        println!(
+            "{} of {} frames used; all {} pixels (inside the clip rectangle) go into the volume",
+            c.frames_used, c.frames, c.pixels
+        );
+    } else {
+        print_sample_counts(c);
+    }
     if let Some(l) = r.levels {
         println!(
             "echo levels: background {:.1}, boundary {:.1}{}",
@@ -239,10 +293,29 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
             }
         );
     }
-    println!(
-        "fit: w = {} mm, max residual {:.2} grey, {} iterations",
-        r.parameters.smoothing_mm, r.fit.max_residual, r.fit.iterations
-    );
+    if let Some(fit) = &r.fit {
+        println!(
+            "fit: w = {} mm, max residual {:.2} grey, {} iterations",
+            r.parameters.smoothing_mm, fit.max_residual, fit.iterations
+        );
+    }
+    if let Some(v) = &r.voxel {
+        println!(
+            "volume: {}x{}x{} voxels at {} mm ({} interpolation, {} compounding, hole filling {}); \
+             {} hit, {} filled; Gaussian sigma {} mm; {} triangles dropped at the data edge",
+            v.dims[0],
+            v.dims[1],
+            v.dims[2],
+            v.spacing_mm[0],
+            v.interpolation,
+            v.compounding,
+            v.hole_filling,
+            v.voxels_hit,
+            v.voxels_filled,
+            v.smoothing_sigma_mm,
+            v.triangles_dropped_at_data_edge
+        );
+    }
     let several = output.surfaces.len() > 1;
     for s in &output.surfaces {
         let t = s.mesh.topology();

@@ -20,6 +20,20 @@ use crate::segment::{
 use crate::surface::{SurfaceDomain, SurfaceOptions, SurfaceStats, extract_surfaces_with_stats};
 use crate::{Error, Result};
 
+mod voxel_route;
+
+pub use voxel_route::{VoxelRouteOptions, VoxelRouteReport, smooth_masked_gaussian};
+
+/// Which route turns the frames into a surface.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub enum Method {
+    /// The paper's direct route: segment -> samples -> RBF fit -> surface.
+    #[default]
+    Rbf,
+    /// The PLUS route: voxel volume of all clipped pixels -> optional Gaussian -> marching cubes.
+    Voxel(VoxelRouteOptions),
+}
+
 /// Which iso-levels to extract.
 #[derive(Debug, Clone, PartialEq)]
 pub enum IsoLevels {
@@ -32,6 +46,7 @@ pub enum IsoLevels {
 /// Everything `extract` needs besides the data. `Default` is what the CLI uses without options.
 #[derive(Debug, Clone)]
 pub struct ExtractOptions {
+    pub method: Method,
     pub iso: IsoLevels,
     pub init: InitialBand,
     pub segment: SegmentOptions,
@@ -52,6 +67,7 @@ pub struct ExtractOptions {
 impl Default for ExtractOptions {
     fn default() -> Self {
         ExtractOptions {
+            method: Method::Rbf,
             iso: IsoLevels::Auto,
             init: InitialBand::Auto,
             segment: SegmentOptions::default(),
@@ -114,18 +130,24 @@ pub struct UsedParameters {
     pub world_frame: String,
     pub pixel_size_mm: [f64; 2],
     pub median_frame_spacing_mm: Option<f64>,
-    pub segment: ResolvedParameters,
+    /// `None` when the route did not segment (voxel route with explicit iso-levels).
+    pub segment: Option<ResolvedParameters>,
 }
 
 /// What `extract` did: the `--report` JSON.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ExtractReport {
+    /// `rbf` or `voxel`.
+    pub method: String,
     pub parameters: UsedParameters,
     /// Echo levels of the kept pixels (background, boundary, suggested iso).
     pub levels: Option<IntensityLevels>,
     pub counts: StageCounts,
-    pub fit: FitReport,
-    pub surface: SurfaceStats,
+    /// The RBF route's fit and surfacer work (`None` on the voxel route).
+    pub fit: Option<FitReport>,
+    pub surface: Option<SurfaceStats>,
+    /// The voxel route's volume and marching cubes (`None` on the RBF route).
+    pub voxel: Option<VoxelRouteReport>,
     pub stages: Vec<StageUsage>,
     pub total_seconds: f64,
     pub peak_rss_bytes: Option<u64>,
@@ -136,7 +158,8 @@ pub struct ExtractReport {
 #[derive(Debug)]
 pub struct ExtractOutput {
     pub surfaces: Vec<ExtractedSurface>,
-    pub model: RbfModel,
+    /// The fitted model (RBF route only).
+    pub model: Option<RbfModel>,
     pub samples: SampleSet,
     /// The outline of every used frame's image (or clip rectangle) in the world, for preview overlays.
     pub frame_outlines: Vec<[DVec3; 2]>,
@@ -379,6 +402,9 @@ pub fn extract(
     options: &ExtractOptions,
     progress: &dyn Progress,
 ) -> Result<ExtractOutput> {
+    if let Method::Voxel(route) = &options.method {
+        return voxel_route::extract_voxel(sequence, calibration, options, route, progress);
+    }
     let mut meter = StageMeter::new();
     let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
     let mut warnings = prepared.masks.warnings.clone();
@@ -438,6 +464,7 @@ pub fn extract(
     counts.centres = fit_report.centres;
     counts.triangles = meshes.iter().map(|m| m.triangles.len()).collect();
     let report = ExtractReport {
+        method: "rbf".into(),
         parameters: UsedParameters {
             iso_levels: levels.clone(),
             iso_auto,
@@ -451,12 +478,13 @@ pub fn extract(
             world_frame: prepared.poses.world_frame.clone(),
             pixel_size_mm: prepared.pixel_size_mm,
             median_frame_spacing_mm: spacing,
-            segment: prepared.masks.parameters,
+            segment: Some(prepared.masks.parameters),
         },
         levels: prepared.levels,
         counts,
-        fit: fit_report,
-        surface: surface_stats,
+        fit: Some(fit_report),
+        surface: Some(surface_stats),
+        voxel: None,
         total_seconds: meter.total_seconds(),
         peak_rss_bytes: meter.peak_rss_bytes(),
         stages: meter.stages,
@@ -469,7 +497,7 @@ pub fn extract(
             .zip(meshes)
             .map(|(level, mesh)| ExtractedSurface { level, mesh })
             .collect(),
-        model,
+        model: Some(model),
         samples: prepared.samples,
         frame_outlines,
         report,

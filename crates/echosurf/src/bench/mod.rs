@@ -1,0 +1,505 @@
+//! `echosurf bench`: the direct RBF route against the voxel route on the same data, scored against
+//! ground truth, and the fit's cost against the number of samples.
+//!
+//! Scoring ([`score_mesh`]): accuracy = MESH -> TRUTH distances over the whole truth; completeness = share
+//! of the *swept, beam-facing* truth within 1 mm of the mesh. A truth triangle counts as swept and
+//! beam-facing when its centroid projects inside some frame's (clipped) image within
+//! `max(1.5 mm, median frame spacing)` of the image plane, and its normal is within 60 degrees of that
+//! frame's beam axis (either sign: the front and back walls of a specular boundary both echo, side walls
+//! beyond 60 degrees do not, cos^12 falls to 2e-4 there). No route can be asked to find what was never
+//! imaged.
+
+pub mod svg;
+
+use glam::{DMat4, DVec3};
+
+use crate::io::{Calibration, ClipRect, TrackedSequence, resolve_poses};
+use crate::mesh::Mesh;
+use crate::metrics::{CompareOptions, compare_meshes, triangle_mask};
+use crate::pipeline::{ExtractOptions, IsoLevels, Method, VoxelRouteOptions, extract};
+use crate::progress::NoProgress;
+use crate::simulate::{PhantomKind, SimulationOptions, TrackingErrors, simulate};
+use crate::{Error, Result};
+
+/// Speckle / noise level of a simulated case.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub enum NoiseLevel {
+    /// Noise floor 6 dB lower, half the surface roughness, half the tracker noise.
+    Low,
+    /// The simulator's defaults.
+    Default,
+    /// Noise floor 8 dB higher, 1.5x roughness, brighter water speckle (+4 dB), 3x tracker noise.
+    High,
+}
+
+impl NoiseLevel {
+    pub const ALL: [NoiseLevel; 3] = [NoiseLevel::Low, NoiseLevel::Default, NoiseLevel::High];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            NoiseLevel::Low => "low",
+            NoiseLevel::Default => "default",
+            NoiseLevel::High => "high",
+        }
+    }
+
+    /// Applies this level to simulation options (acoustics and tracking errors).
+    pub fn apply(self, options: &mut SimulationOptions) {
+        let defaults = TrackingErrors::default();
+        match self {
+            NoiseLevel::Default => {}
+            NoiseLevel::Low => {
+                options.acoustics.noise_db -= 6.0;
+                options.acoustics.roughness *= 0.5;
+                options.errors.tracker_noise_mm = 0.5 * defaults.tracker_noise_mm;
+                options.errors.tracker_noise_deg = 0.5 * defaults.tracker_noise_deg;
+            }
+            NoiseLevel::High => {
+                options.acoustics.noise_db += 8.0;
+                options.acoustics.roughness *= 1.5;
+                options.acoustics.water.scatter_db += 4.0;
+                options.errors.tracker_noise_mm = 3.0 * defaults.tracker_noise_mm;
+                options.errors.tracker_noise_deg = 3.0 * defaults.tracker_noise_deg;
+            }
+        }
+    }
+}
+
+/// A sequence with its calibration and ground truth.
+#[derive(Debug, Clone)]
+pub struct BenchCase {
+    pub name: String,
+    pub sequence: TrackedSequence,
+    pub calibration: Calibration,
+    /// All true surfaces merged into one mesh.
+    pub truth: Mesh,
+    /// Where every used frame's image really was (Image -> World), for the completeness mask.
+    pub true_image_to_world: Vec<DMat4>,
+}
+
+/// Settings of a benchmark run.
+#[derive(Debug, Clone)]
+pub struct BenchOptions {
+    /// Small images and few frames: a CI-sized run.
+    pub quick: bool,
+    /// Iso-level for both routes; `Auto` = each route's own automatic level.
+    pub iso: IsoLevels,
+    /// RBF route's decimation target.
+    pub max_samples: usize,
+    pub voxel: VoxelRouteOptions,
+    pub seed: u64,
+}
+
+impl Default for BenchOptions {
+    fn default() -> Self {
+        BenchOptions {
+            quick: false,
+            iso: IsoLevels::Auto,
+            max_samples: 100_000,
+            voxel: VoxelRouteOptions::default(),
+            seed: 1,
+        }
+    }
+}
+
+/// Simulation settings of a benchmark phantom: the simulator's defaults, or in quick mode 128 x 100 px
+/// at 0.4 mm and 20 frames per sweep.
+pub fn simulation_options(
+    phantom: PhantomKind,
+    noise: NoiseLevel,
+    quick: bool,
+    seed: u64,
+) -> SimulationOptions {
+    let mut options = SimulationOptions {
+        phantom,
+        seed,
+        ..SimulationOptions::default()
+    };
+    if quick {
+        options.frames_per_sweep = 20;
+        options.width_px = 128;
+        options.height_px = 100;
+        options.pixel_size_mm = 0.4;
+        options.truth_resolution_mm = 1.0;
+    }
+    noise.apply(&mut options);
+    options
+}
+
+/// Simulates one benchmark case.
+pub fn simulated_case(
+    phantom: PhantomKind,
+    noise: NoiseLevel,
+    quick: bool,
+    seed: u64,
+) -> Result<BenchCase> {
+    let name = format!("{} / {}", phantom.name(), noise.name());
+    let options = simulation_options(phantom, noise, quick, seed);
+    let sim = simulate(&options, &NoProgress)?;
+    Ok(BenchCase {
+        name,
+        sequence: sim.sequence,
+        calibration: sim.calibration_written,
+        truth: merge_meshes(sim.truth.iter().map(|(_, m)| m)),
+        true_image_to_world: sim.true_image_to_world,
+    })
+}
+
+/// A user case: the recorded poses stand in for the true ones in the completeness mask.
+pub fn user_case(
+    name: String,
+    sequence: TrackedSequence,
+    calibration: Calibration,
+    truth: Mesh,
+) -> Result<BenchCase> {
+    let poses = resolve_poses(
+        &sequence,
+        Some(&calibration),
+        crate::io::ReferenceChoice::Auto,
+        std::path::Path::new(&name),
+    )?;
+    let true_image_to_world = poses.poses.iter().map(|p| p.image_to_world).collect();
+    Ok(BenchCase {
+        name,
+        sequence,
+        calibration,
+        truth,
+        true_image_to_world,
+    })
+}
+
+/// Concatenates meshes (normals kept only if every mesh has them).
+pub fn merge_meshes<'a>(meshes: impl Iterator<Item = &'a Mesh>) -> Mesh {
+    let mut out = Mesh::default();
+    let mut all_normals = true;
+    for m in meshes {
+        let base = out.vertices.len() as u32;
+        out.vertices.extend(&m.vertices);
+        all_normals &= m.normals.len() == m.vertices.len();
+        out.normals.extend(&m.normals);
+        out.triangles
+            .extend(m.triangles.iter().map(|t| t.map(|i| i + base)));
+    }
+    if !all_normals {
+        out.normals.clear();
+    }
+    out
+}
+
+/// Swept, beam-facing truth triangles (see the module docs). The beam runs along the image's +v axis.
+pub fn swept_beam_facing_mask(
+    truth: &Mesh,
+    image_to_world: &[DMat4],
+    width: usize,
+    height: usize,
+    clip: Option<ClipRect>,
+    max_plane_distance_mm: f64,
+    max_angle_deg: f64,
+) -> Vec<bool> {
+    let (u0, v0, u1, v1) =
+        match clip.and_then(|c| crate::io::pose::clip_corners_px(width, height, &c)) {
+            Some([a, b, c, d]) => (a, b, c, d),
+            None => (0.0, 0.0, width as f64 - 1.0, height as f64 - 1.0),
+        };
+    let cos_limit = max_angle_deg.to_radians().cos();
+    // Per frame: world -> image, image -> world, the unit beam direction and the plane's unit normal.
+    let frames: Vec<(DMat4, DMat4, DVec3, DVec3)> = image_to_world
+        .iter()
+        .filter_map(|m| {
+            let beam = m.transform_vector3(DVec3::Y).try_normalize()?;
+            let normal = m
+                .transform_vector3(DVec3::X)
+                .cross(m.transform_vector3(DVec3::Y))
+                .try_normalize()?;
+            Some((m.inverse(), *m, beam, normal))
+        })
+        .collect();
+    triangle_mask(truth, |centroid, triangle_normal| {
+        triangle_normal.is_finite()
+            && frames
+                .iter()
+                .any(|(world_to_image, to_world, beam, plane_normal)| {
+                    let p = world_to_image.transform_point3(centroid);
+                    if !(p.x >= u0 && p.x <= u1 && p.y >= v0 && p.y <= v1) {
+                        return false;
+                    }
+                    let foot = to_world.transform_point3(DVec3::new(p.x, p.y, 0.0));
+                    (centroid - foot).dot(*plane_normal).abs() <= max_plane_distance_mm
+                        && triangle_normal.dot(*beam).abs() >= cos_limit
+                })
+    })
+}
+
+/// One route on one case.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct RouteResult {
+    pub case: String,
+    pub route: String,
+    pub iso: f64,
+    pub triangles: usize,
+    pub components: usize,
+    /// MESH -> TRUTH (mm); NaN when the route produced no surface.
+    pub accuracy_mean_mm: f64,
+    pub accuracy_p95_mm: f64,
+    /// Share of the swept, beam-facing truth within 1 mm of the mesh.
+    pub completeness_1mm: f64,
+    pub seconds: f64,
+    /// Peak resident memory during the route above the resident memory at its start.
+    pub peak_extra_bytes: Option<u64>,
+    pub error: Option<String>,
+}
+
+/// Median distance between the origins of consecutive frames.
+fn median_spacing(frames: &[DMat4]) -> Option<f64> {
+    let mut d: Vec<f64> = frames
+        .windows(2)
+        .map(|w| w[0].w_axis.truncate().distance(w[1].w_axis.truncate()))
+        .filter(|d| d.is_finite() && *d > 1e-6)
+        .collect();
+    d.sort_by(f64::total_cmp);
+    d.get(d.len() / 2).copied()
+}
+
+/// Runs both routes on a case and scores them.
+pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteResult>> {
+    let plane_distance = median_spacing(&case.true_image_to_world)
+        .unwrap_or(1.5)
+        .max(1.5);
+    let mask = swept_beam_facing_mask(
+        &case.truth,
+        &case.true_image_to_world,
+        case.sequence.width,
+        case.sequence.height,
+        case.calibration.clip,
+        plane_distance,
+        60.0,
+    );
+    if !mask.iter().any(|&m| m) {
+        return Err(Error::InvalidInput(format!(
+            "{}: no truth triangle is swept and beam-facing (do the truth and the sequence share a frame?)",
+            case.name
+        )));
+    }
+    let compare = CompareOptions {
+        samples_per_mm2: if options.quick { 2.0 } else { 5.0 },
+        min_samples: if options.quick { 2_000 } else { 20_000 },
+        max_samples: 300_000,
+        seed: options.seed,
+        truth_mask: Some(mask),
+    };
+    let mut results = Vec::new();
+    for (route, method) in [
+        ("rbf", Method::Rbf),
+        ("voxel", Method::Voxel(options.voxel.clone())),
+    ] {
+        let extract_options = ExtractOptions {
+            method,
+            iso: options.iso.clone(),
+            max_samples: options.max_samples,
+            seed: options.seed,
+            ..ExtractOptions::default()
+        };
+        let baseline = crate::resources::current_rss_bytes();
+        let start = std::time::Instant::now();
+        let outcome = extract(
+            &case.sequence,
+            Some(&case.calibration),
+            &extract_options,
+            &NoProgress,
+        );
+        let seconds = start.elapsed().as_secs_f64();
+        let mut result = RouteResult {
+            case: case.name.clone(),
+            route: route.into(),
+            iso: f64::NAN,
+            triangles: 0,
+            components: 0,
+            accuracy_mean_mm: f64::NAN,
+            accuracy_p95_mm: f64::NAN,
+            completeness_1mm: 0.0,
+            seconds,
+            peak_extra_bytes: None,
+            error: None,
+        };
+        match outcome {
+            Err(e) => result.error = Some(e.to_string()),
+            Ok(output) => {
+                result.peak_extra_bytes = output
+                    .report
+                    .peak_rss_bytes
+                    .zip(baseline)
+                    .map(|(p, b)| p.saturating_sub(b));
+                result.iso = output.surfaces.first().map_or(f64::NAN, |s| s.level);
+                let mesh = merge_meshes(output.surfaces.iter().map(|s| &s.mesh));
+                result.triangles = mesh.triangles.len();
+                if mesh.is_empty() {
+                    result.error = Some("no surface".into());
+                } else {
+                    match compare_meshes(&mesh, &case.truth, &compare) {
+                        Ok(c) => {
+                            result.components = c.mesh_topology.components;
+                            result.accuracy_mean_mm = c.accuracy.mean_mm;
+                            result.accuracy_p95_mm = c.accuracy.p95_mm;
+                            result.completeness_1mm = c.completeness_1mm;
+                        }
+                        Err(e) => result.error = Some(e.to_string()),
+                    }
+                }
+            }
+        }
+        results.push(result);
+    }
+    Ok(results)
+}
+
+fn mb(bytes: Option<u64>) -> String {
+    bytes.map_or_else(|| "n/a".into(), |b| format!("{:.0}", b as f64 / 1e6))
+}
+
+/// The results as a markdown table, one row per case and route.
+pub fn markdown_table(results: &[RouteResult]) -> String {
+    let mut out = String::from(
+        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | components | triangles | time (s) | peak extra memory (MB) |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for r in results {
+        let note = r
+            .error
+            .as_deref()
+            .map(|e| format!(" ({e})"))
+            .unwrap_or_default();
+        out.push_str(&format!(
+            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {} | {} | {:.2} | {} |\n",
+            r.case,
+            r.route,
+            note,
+            r.iso,
+            r.accuracy_mean_mm,
+            r.accuracy_p95_mm,
+            100.0 * r.completeness_1mm,
+            r.components,
+            r.triangles,
+            r.seconds,
+            mb(r.peak_extra_bytes),
+        ));
+    }
+    out
+}
+
+/// Accuracy (mean, mm) against time (s), one series per route.
+pub fn accuracy_vs_time_plot(results: &[RouteResult]) -> svg::Plot {
+    let series = ["rbf", "voxel"]
+        .iter()
+        .map(|route| svg::Series {
+            name: format!("{route} route"),
+            points: results
+                .iter()
+                .filter(|r| r.route == *route)
+                .map(|r| (r.seconds, r.accuracy_mean_mm))
+                .collect(),
+            connect: false,
+        })
+        .collect();
+    svg::Plot {
+        title: "Accuracy against time, all cases".into(),
+        x_label: "time (s, log)".into(),
+        y_label: "mean distance mesh -> truth (mm)".into(),
+        x_log: true,
+        y_log: false,
+        series,
+    }
+}
+
+/// Fit time against the number of samples, log-log.
+pub fn fit_scaling_plot(rows: &[crate::rbf::ScalingRow]) -> svg::Plot {
+    svg::Plot {
+        title: "RBF fit time against samples (ultrasound-like data)".into(),
+        x_label: "samples".into(),
+        y_label: "seconds".into(),
+        x_log: true,
+        y_log: true,
+        series: vec![
+            svg::Series {
+                name: "fit".into(),
+                points: rows
+                    .iter()
+                    .map(|r| (r.samples as f64, r.fit_seconds))
+                    .collect(),
+                connect: true,
+            },
+            svg::Series {
+                name: "evaluate N points".into(),
+                points: rows
+                    .iter()
+                    .map(|r| (r.samples as f64, r.eval_seconds))
+                    .collect(),
+                connect: true,
+            },
+        ],
+    }
+}
+
+/// The sample counts of the fit-scaling run up to `max` (1k, 3k, 10k, 30k, 100k, ...).
+pub fn fit_sizes(max: usize) -> Vec<usize> {
+    let mut sizes = Vec::new();
+    let mut decade = 1_000usize;
+    while decade <= max {
+        sizes.push(decade);
+        if 3 * decade <= max {
+            sizes.push(3 * decade);
+        }
+        decade = match decade.checked_mul(10) {
+            Some(d) => d,
+            None => break,
+        };
+    }
+    sizes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metrics::shapes::icosphere;
+
+    #[test]
+    fn fit_sizes_are_one_three_per_decade() {
+        assert_eq!(
+            fit_sizes(100_000),
+            vec![1_000, 3_000, 10_000, 30_000, 100_000]
+        );
+        assert_eq!(fit_sizes(3_000), vec![1_000, 3_000]);
+        assert!(fit_sizes(999).is_empty());
+    }
+
+    /// One frame through the centre of a sphere, beam along -z: only the top and bottom caps within
+    /// 60 degrees of the beam axis and inside the image count.
+    #[test]
+    fn mask_keeps_the_swept_caps_facing_the_beam() {
+        let sphere = icosphere(DVec3::ZERO, 10.0, 4);
+        // Image x -> world x, image y (depth) -> world -z, 0.5 mm pixels, image top at z = 20.
+        let frame = DMat4::from_cols(
+            glam::DVec4::new(0.5, 0.0, 0.0, 0.0),
+            glam::DVec4::new(0.0, 0.0, -0.5, 0.0),
+            glam::DVec4::new(0.0, 1.0, 0.0, 0.0),
+            glam::DVec4::new(-20.0, 0.0, 20.0, 1.0),
+        );
+        let mask = swept_beam_facing_mask(&sphere, &[frame], 81, 81, None, 1.5, 60.0);
+        let kept: Vec<usize> = (0..mask.len()).filter(|&i| mask[i]).collect();
+        assert!(!kept.is_empty());
+        for &i in &kept {
+            let c = sphere.triangles[i]
+                .map(|v| sphere.vertices[v as usize])
+                .iter()
+                .sum::<DVec3>()
+                / 3.0;
+            assert!(c.y.abs() <= 1.5 + 1e-9, "off the plane: {c}");
+            assert!(c.z.abs() / c.length() >= 0.45, "not facing the beam: {c}");
+        }
+        // The equator at x = +-10 (normal across the beam) is not kept.
+        let side_kept = kept.iter().any(|&i| {
+            let c = sphere.vertices[sphere.triangles[i][0] as usize];
+            c.x.abs() > 9.5
+        });
+        assert!(!side_kept);
+    }
+}
