@@ -363,7 +363,13 @@ pub fn surface_domain(
     SurfaceDomain {
         bounds_min_mm: lo - margin,
         bounds_max_mm: hi + margin,
-        seeds: surface_seeds(points, values, levels, seed_band.max(1.0), MAX_SURFACE_SEEDS),
+        seeds: surface_seeds(
+            points,
+            values,
+            levels,
+            seed_band.max(1.0),
+            MAX_SURFACE_SEEDS,
+        ),
         trust_points: points.to_vec(),
     }
 }
