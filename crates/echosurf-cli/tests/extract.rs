@@ -44,6 +44,7 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
     let mesh = dir.path().join("mesh.ply");
     let report = dir.path().join("report.json");
     let preview = dir.path().join("preview.png");
+    let model = dir.path().join("fit.esrbf");
     let out = echosurf(&[
         "extract",
         seq.to_str().unwrap(),
@@ -57,6 +58,8 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
         report.to_str().unwrap(),
         "--preview",
         preview.to_str().unwrap(),
+        "--model",
+        model.to_str().unwrap(),
     ]);
     assert!(
         out.status.success(),
@@ -104,6 +107,48 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
     assert!(median < 3.0, "median mesh-to-truth distance {median} mm");
     let completeness = c["completeness_1mm"].as_f64().unwrap();
     assert!(completeness > 0.08, "completeness {completeness}");
+
+    // The saved model surfaces again at two levels without refitting: one manifold mesh per level, the
+    // higher level enclosing less (fewer triangles around the brighter core of the echo).
+    let levels_out = dir.path().join("levels.ply");
+    let out = echosurf(&[
+        "surface",
+        model.to_str().unwrap(),
+        "--iso",
+        "25,40",
+        "--out",
+        levels_out.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut triangles = Vec::new();
+    for name in ["levels_iso25.ply", "levels_iso40.ply"] {
+        let path = dir.path().join(name);
+        let c = echosurf(&[
+            "compare",
+            path.to_str().unwrap(),
+            truth.to_str().unwrap(),
+            "--json",
+        ]);
+        assert!(c.status.success(), "{name}");
+        let c: serde_json::Value = serde_json::from_slice(&c.stdout).unwrap();
+        assert_eq!(c["mesh_oriented_manifold"], true, "{name}: {c}");
+        triangles.push(c["mesh_topology"]["triangles"].as_u64().unwrap());
+    }
+    assert!(triangles[0] > triangles[1], "{triangles:?}");
+    let out = echosurf(&[
+        "surface",
+        model.to_str().unwrap(),
+        "--iso",
+        "999",
+        "--out",
+        levels_out.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("outside"));
 }
 
 #[test]
