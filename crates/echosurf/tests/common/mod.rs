@@ -10,6 +10,8 @@ use echosurf::io::{self, PixelData, TrackedSequence};
 use echosurf::mesh::Mesh;
 use glam::DVec3;
 
+pub mod corpus;
+
 /// `shared/data/real` beside the repository (CI layout), or in the nearest ancestor folder that has it
 /// (helper worktrees live deeper than the main checkout).
 pub fn real_dir() -> PathBuf {
