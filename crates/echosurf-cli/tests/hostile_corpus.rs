@@ -177,3 +177,55 @@ fn the_cli_refuses_every_corpus_file_quickly_and_within_memory() {
         failures.join("\n")
     );
 }
+
+/// `--memory-budget` refuses up front (no time spent, nothing written) and says what would fit.
+#[test]
+fn memory_budget_refuses_up_front_with_what_would_fit() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = dir.path().join("sim");
+    let status = Command::new(BIN)
+        .args([
+            "simulate",
+            "--phantom",
+            "sphere",
+            "--frames-per-sweep",
+            "8",
+            "--width",
+            "64",
+        ])
+        .args(["--height", "64", "--out"])
+        .arg(&sim)
+        .output()
+        .unwrap();
+    assert!(status.status.success());
+    let extract = |extra: &[&str]| {
+        let start = Instant::now();
+        let out = Command::new(BIN)
+            .arg("extract")
+            .arg(sim.join("sim.mha"))
+            .arg("--config")
+            .arg(sim.join("sim_config.xml"))
+            .arg("--out")
+            .arg(dir.path().join("mesh.ply"))
+            .args(extra)
+            .output()
+            .unwrap();
+        (out, start.elapsed().as_secs_f64())
+    };
+    // A 0.05 mm lattice over the sweep needs gigabytes: refused, with a resolution that fits.
+    let (out, seconds) = extract(&["--resolution", "0.05", "--memory-budget", "2000"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(stderr.contains("memory budget is 2000 MB"), "{stderr}");
+    assert!(stderr.contains("--resolution"), "{stderr}");
+    assert!(seconds < MAX_SECONDS, "refusal took {seconds} s");
+    // 100k samples with the fast solver need ~400 MB: refused with a sample count that fits.
+    let (out, _) = extract(&["--max-samples", "100000", "--memory-budget", "300"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(stderr.contains("--max-samples"), "{stderr}");
+    assert!(!dir.path().join("mesh.ply").exists());
+    // Nonsense budgets are refused as such.
+    let (out, _) = extract(&["--memory-budget", "0"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("positive number of MB"));
+}

@@ -43,6 +43,8 @@ pub struct ExtractOptions {
     pub surface: SurfaceOptions,
     /// Region-of-trust radius in mm; `None` derives it from the frame spacing (see [`trust_distance_for`]).
     pub trust_distance_mm: Option<f64>,
+    /// Refuse up front when the estimated memory exceeds this (see [`crate::budget`]); `None`: no check.
+    pub memory_budget_bytes: Option<u64>,
 }
 
 impl Default for ExtractOptions {
@@ -57,6 +59,7 @@ impl Default for ExtractOptions {
             fit: FitOptions::default(),
             surface: SurfaceOptions::default(),
             trust_distance_mm: None,
+            memory_budget_bytes: None,
         }
     }
 }
@@ -303,6 +306,9 @@ pub fn extract(
     options: &ExtractOptions,
     progress: &dyn Progress,
 ) -> Result<ExtractOutput> {
+    if let Some(budget) = options.memory_budget_bytes {
+        crate::budget::check_extract_budget(sequence, calibration, options, budget)?;
+    }
     let mut meter = StageMeter::new();
     let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
     let mut warnings = prepared.masks.warnings.clone();
