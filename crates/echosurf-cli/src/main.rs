@@ -46,7 +46,22 @@ enum Command {
     Demo(cmd::demo::Args),
 }
 
+/// Exit code of a run stopped by Ctrl-C (128 + SIGINT), as shells report it.
+const INTERRUPTED_EXIT_CODE: i32 = 130;
+
 fn main() -> ExitCode {
+    // Ctrl-C: remove the unfinished hidden temporary outputs, so an interrupted run leaves neither a
+    // partial file nor litter. Finished outputs were renamed into place whole and stay.
+    let _ = ctrlc::set_handler(|| {
+        let removed = echosurf::io::atomic::remove_in_flight_temp_files();
+        eprintln!(
+            "\ninterrupted: no output was left half-written ({removed} unfinished file(s) removed)"
+        );
+        std::process::exit(INTERRUPTED_EXIT_CODE);
+    });
+    // Dense factorisations (the direct RBF solve) run sequentially: faer's rayon-parallel LU sums in an
+    // order that depends on the thread count, and outputs must be byte-identical for any thread count.
+    faer::set_global_parallelism(faer::Par::Seq);
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),

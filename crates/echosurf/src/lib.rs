@@ -9,6 +9,7 @@
 //! Geometry is `f64` throughout (glam `DVec3` / `DMat4`), in millimetres unless a name says otherwise.
 
 pub mod bench;
+pub mod budget;
 pub mod error;
 pub mod io;
 pub mod mesh;

@@ -60,6 +60,9 @@ pub struct Args {
     /// Seed of the random decimation (and of everything else random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Refuse up front when the run would need more than this many MB (default: half the machine's memory).
+    #[arg(long)]
+    pub memory_budget: Option<f64>,
     /// Write what every stage did (counts, parameters, time, peak memory) as JSON.
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -141,6 +144,15 @@ fn parse_method(args: &Args) -> anyhow::Result<Method> {
     }
 }
 
+/// `--memory-budget MB`, or the machine default.
+pub fn memory_budget_bytes(mb: Option<f64>) -> anyhow::Result<u64> {
+    match mb {
+        None => Ok(echosurf::budget::default_memory_budget_bytes()),
+        Some(mb) if mb.is_finite() && mb > 0.0 => Ok((mb * 1e6) as u64),
+        Some(mb) => anyhow::bail!("--memory-budget must be a positive number of MB, got {mb}"),
+    }
+}
+
 fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
     Ok(match text.to_ascii_lowercase().as_str() {
         "auto" => ReferenceChoice::Auto,
@@ -184,6 +196,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         trust_distance_mm: args.trust_distance,
         sample_bin_mm: args.sample_bin,
+        memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
     };
     let progress = BarProgress::new();
     let output = pipeline::extract(&sequence, Some(&calibration), &options, &progress)

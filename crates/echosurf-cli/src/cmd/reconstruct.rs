@@ -61,7 +61,7 @@ pub struct Args {
     /// Hole filling (default: the configuration's FillHoles and HoleFilling elements).
     #[arg(long, value_enum)]
     pub fill_holes: Option<FillHolesArg>,
-    /// Refuse grids whose buffers need more than this many MB (default 2048).
+    /// Refuse grids whose buffers need more than this many MB (default: half the machine's memory).
     #[arg(long)]
     pub memory_budget: Option<f64>,
     /// Write the voxel data uncompressed (default: zlib, as PLUS writes).
@@ -113,13 +113,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .unwrap_or_else(|| HoleFilling::gaussian(5, 0.6667, 0.25)),
         };
     }
-    if let Some(mb) = args.memory_budget {
-        anyhow::ensure!(
-            mb.is_finite() && mb > 0.0,
-            "--memory-budget must be a positive number of MB, got {mb}"
-        );
-        options.memory_budget_bytes = (mb * 1e6) as u64;
-    }
+    options.memory_budget_bytes = super::extract::memory_budget_bytes(args.memory_budget)?;
     for ignored in &options.ignored_settings {
         eprintln!("warning: {}: ignored {ignored}", args.config.display());
     }

@@ -1,11 +1,28 @@
 //! Atomic output: data goes to a hidden temporary file in the destination folder, which is renamed over
 //! the destination only once it is complete and flushed. A crash or Ctrl-C leaves the old file (or none).
+//!
+//! Temporary files in flight are registered so a Ctrl-C handler can remove them
+//! ([`remove_in_flight_temp_files`]); after a SIGKILL nothing can run, so the next write into the same
+//! folder removes leftovers whose process is gone ([`remove_stale_temp_files`]).
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard};
 
 use crate::{Error, Result};
+
+/// Temporary files being written by this process. Renames happen under this lock, so a signal handler
+/// holding it sees every temporary file either still in flight or already renamed into place.
+static IN_FLIGHT: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+fn in_flight() -> MutexGuard<'static, Vec<PathBuf>> {
+    IN_FLIGHT
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+const TEMP_MARKER: &str = ".echosurf-tmp-";
 
 /// Writes `path` atomically: `fill` writes the whole content into a buffered temporary file.
 pub fn write_atomic<F>(path: &Path, fill: F) -> Result<()>
@@ -13,6 +30,8 @@ where
     F: FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 {
     let tmp = temp_path(path);
+    remove_stale_temp_files(tmp.parent().unwrap_or(Path::new(".")));
+    in_flight().push(tmp.clone());
     let result = (|| -> std::io::Result<()> {
         let file = File::create(&tmp)?;
         let mut writer = BufWriter::with_capacity(1 << 20, file);
@@ -22,14 +41,72 @@ where
         file.sync_all()?;
         Ok(())
     })();
+    let mut registry = in_flight();
+    registry.retain(|p| p != &tmp);
     if let Err(e) = result {
         let _ = std::fs::remove_file(&tmp);
         return Err(Error::io(path, e));
     }
-    std::fs::rename(&tmp, path).map_err(|e| {
+    let renamed = std::fs::rename(&tmp, path).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
         Error::io(path, e)
-    })
+    });
+    drop(registry);
+    renamed
+}
+
+/// Removes this process's unfinished temporary files and returns how many there were. For a Ctrl-C
+/// handler: call it, then exit without returning (the lock stays held so no rename can follow).
+pub fn remove_in_flight_temp_files() -> usize {
+    let registry = in_flight();
+    for tmp in registry.iter() {
+        let _ = std::fs::remove_file(tmp);
+    }
+    let n = registry.len();
+    // Keep the guard alive until the process exits: a writer thread must not rename afterwards.
+    std::mem::forget(registry);
+    n
+}
+
+/// Removes `.NAME.echosurf-tmp-PID` files in `dir` left by echosurf processes that no longer run (killed
+/// with SIGKILL mid-write). Liveness is read from `/proc/PID`; where `/proc` is absent nothing is removed.
+/// Returns how many files were removed.
+pub fn remove_stale_temp_files(dir: &Path) -> usize {
+    if !Path::new("/proc/self").exists() {
+        return 0;
+    }
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let me = std::process::id();
+    let mut removed = 0;
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        if !name.starts_with('.') {
+            continue;
+        }
+        let Some(pid) = name
+            .rsplit_once(TEMP_MARKER)
+            .and_then(|(_, pid)| pid.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid == me || Path::new(&format!("/proc/{pid}")).exists() {
+            continue;
+        }
+        if entry.file_type().is_ok_and(|t| t.is_file())
+            && std::fs::remove_file(entry.path()).is_ok()
+        {
+            removed += 1;
+        }
+    }
+    removed
 }
 
 /// Writes bytes atomically.
@@ -44,7 +121,7 @@ pub fn temp_path(path: &Path) -> PathBuf {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "output".into());
-    let tmp_name = format!(".{name}.echosurf-tmp-{}", std::process::id());
+    let tmp_name = format!(".{name}{TEMP_MARKER}{}", std::process::id());
     match path.parent() {
         Some(dir) if !dir.as_os_str().is_empty() => dir.join(tmp_name),
         _ => PathBuf::from(tmp_name),
@@ -66,6 +143,34 @@ mod tests {
         assert!(err.is_err());
         assert!(!path.exists());
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn stale_temp_files_of_dead_processes_are_removed_live_ones_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        // PIDs are below 2^22 on Linux, so this one cannot be running.
+        let dead = dir.path().join(".mesh.ply.echosurf-tmp-4194999");
+        let mine = temp_path(&dir.path().join("model.esrbf"));
+        let unrelated = dir.path().join(".hidden-user-file");
+        for p in [&dead, &mine, &unrelated] {
+            std::fs::write(p, b"x").unwrap();
+        }
+        write_bytes_atomic(&dir.path().join("out.bin"), b"data").unwrap();
+        if Path::new("/proc/self").exists() {
+            assert!(!dead.exists());
+        }
+        assert!(mine.exists(), "a live process's temp file must stay");
+        assert!(unrelated.exists());
+        assert!(dir.path().join("out.bin").exists());
+    }
+
+    #[test]
+    fn registry_is_empty_after_writes() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.bin");
+        write_bytes_atomic(&path, b"a").unwrap();
+        let tmp = temp_path(&path);
+        assert!(!in_flight().contains(&tmp));
     }
 
     #[test]

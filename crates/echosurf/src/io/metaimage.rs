@@ -225,12 +225,7 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
                     format!("ElementDataFile = {data_file}: file lists and patterns are not read"),
                 ));
             }
-            let data_path = sibling_path(path, &data_file);
-            let data = File::open(&data_path).map_err(|e| data_file_error(path, &data_path, e))?;
-            let available = data
-                .metadata()
-                .map_err(|e| data_file_error(path, &data_path, e))?
-                .len();
+            let (data_path, data, available) = open_data_file(path, &data_file)?;
             Some(read_pixel_block(
                 BufReader::with_capacity(1 << 16, data),
                 available,
@@ -271,6 +266,32 @@ pub(crate) fn sibling_path(header_path: &Path, name: &str) -> PathBuf {
     }
 }
 
+/// Opens the detached data file `name` of header `header` (relative to its folder) and returns its path,
+/// handle and length. Only regular files: an empty name (the header's folder), a folder or a device such
+/// as `/dev/zero` would otherwise be read without end.
+pub(crate) fn open_data_file(header: &Path, name: &str) -> Result<(PathBuf, File, u64)> {
+    if name.trim().is_empty() {
+        return Err(Error::format(
+            header,
+            FormatProblem::MissingField,
+            "the data file name is empty (expected LOCAL or a file name)",
+        ));
+    }
+    let data_path = sibling_path(header, name);
+    let data = File::open(&data_path).map_err(|e| data_file_error(header, &data_path, e))?;
+    let meta = data
+        .metadata()
+        .map_err(|e| data_file_error(header, &data_path, e))?;
+    if !meta.is_file() {
+        return Err(Error::format(
+            header,
+            FormatProblem::BadValue,
+            format!("data file {} is not a regular file", data_path.display()),
+        ));
+    }
+    Ok((data_path, data, meta.len()))
+}
+
 /// A detached data file that cannot be opened: named in the error of the header file.
 pub(crate) fn data_file_error(header: &Path, data: &Path, e: std::io::Error) -> Error {
     if e.kind() == std::io::ErrorKind::NotFound {
@@ -280,7 +301,11 @@ pub(crate) fn data_file_error(header: &Path, data: &Path, e: std::io::Error) -> 
             format!("data file {} does not exist", data.display()),
         )
     } else {
-        Error::io(data, e)
+        Error::format(
+            header,
+            FormatProblem::BadValue,
+            format!("data file {} cannot be opened: {e}", data.display()),
+        )
     }
 }
 

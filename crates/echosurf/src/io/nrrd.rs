@@ -9,7 +9,7 @@ use std::fs::File;
 use std::io::BufReader;
 use std::path::Path;
 
-use super::metaimage::{data_file_error, sibling_path};
+use super::metaimage::open_data_file;
 use super::seq_decode::{
     Assembled, Compression, FrameFieldCollector, Layout, assemble, line_to_str, read_header_line,
     read_pixel_block, split_frame_key, truncate_for_message,
@@ -223,13 +223,7 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
                         format!("data file {name:?}: file lists and patterns are not read"),
                     ));
                 }
-                let data_path = sibling_path(path, &name);
-                let data =
-                    File::open(&data_path).map_err(|e| data_file_error(path, &data_path, e))?;
-                let available = data
-                    .metadata()
-                    .map_err(|e| data_file_error(path, &data_path, e))?
-                    .len();
+                let (data_path, data, available) = open_data_file(path, &name)?;
                 Some(read_pixel_block(
                     BufReader::with_capacity(1 << 16, data),
                     available,

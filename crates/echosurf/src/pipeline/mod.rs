@@ -62,6 +62,8 @@ pub struct ExtractOptions {
     /// Kept pixels are averaged over blocks of about this size (mm, in the image plane) before random
     /// decimation; 0 uses single pixels.
     pub sample_bin_mm: f64,
+    /// Refuse up front when the estimated memory exceeds this (see [`crate::budget`]); `None`: no check.
+    pub memory_budget_bytes: Option<u64>,
 }
 
 impl Default for ExtractOptions {
@@ -81,6 +83,7 @@ impl Default for ExtractOptions {
             surface: SurfaceOptions::default(),
             trust_distance_mm: None,
             sample_bin_mm: 0.4,
+            memory_budget_bytes: None,
         }
     }
 }
@@ -410,6 +413,9 @@ pub fn extract(
 ) -> Result<ExtractOutput> {
     if let Method::Voxel(route) = &options.method {
         return voxel_route::extract_voxel(sequence, calibration, options, route, progress);
+    }
+    if let Some(budget) = options.memory_budget_bytes {
+        crate::budget::check_extract_budget(sequence, calibration, options, budget)?;
     }
     let mut meter = StageMeter::new();
     let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;

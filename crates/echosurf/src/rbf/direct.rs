@@ -31,8 +31,14 @@ pub(crate) fn solve_dense(
         }
     });
     let mut rhs = Mat::<f64>::from_fn(size, 1, |i, _| if i < n { values[i] } else { 0.0 });
+    // faer's blocked LU splits its work by thread count when it runs in parallel, which changes the
+    // rounding of the result: run it sequentially so a fit is bit-identical on 1 or many threads (the
+    // dense path is only used up to a few thousand points, where this costs well under a second).
+    let previous = faer::get_global_parallelism();
+    faer::set_global_parallelism(faer::Par::Seq);
     let lu = m.partial_piv_lu();
     lu.solve_in_place(rhs.as_mut());
+    faer::set_global_parallelism(previous);
     let solution: Vec<f64> = (0..size).map(|i| rhs[(i, 0)]).collect();
     if solution.iter().any(|v| !v.is_finite()) {
         return Err(Error::Numerical(format!(

@@ -283,6 +283,17 @@ pub fn read_volume_mha(path: &Path) -> Result<Volume> {
         &bytes[pos..]
     } else {
         let data_path = path.parent().unwrap_or(Path::new(".")).join(&data_file);
+        // Only a regular file: an empty name (the folder) or a device like /dev/zero never ends.
+        if data_file.trim().is_empty() || !data_path.is_file() {
+            return Err(bad(
+                path,
+                FormatProblem::MissingField,
+                format!(
+                    "data file {} is not a readable regular file",
+                    data_path.display()
+                ),
+            ));
+        }
         external = std::fs::read(&data_path).map_err(|e| Error::io(&data_path, e))?;
         &external
     };
