@@ -9,8 +9,8 @@ use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_echosurf");
 
-/// A simulated sphere sweep whose full extract (default 100k samples) takes minutes in the dev profile,
-/// so a kill after a moment always lands mid-run.
+/// A simulated sphere sweep; `start_extract` asks for 400k samples and a 0.15 mm lattice, which takes
+/// far longer than the moment the test waits before interrupting it (the default extract is fast).
 fn simulate(dir: &Path) {
     let status = Command::new(BIN)
         .args([
@@ -43,6 +43,14 @@ fn start_extract(sim: &Path, out: &Path) -> Child {
         .arg(out.join("model.esrbf"))
         .arg("--preview")
         .arg(out.join("preview.png"))
+        .args([
+            "--max-samples",
+            "400000",
+            "--resolution",
+            "0.15",
+            "--sample-bin",
+            "0",
+        ])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
@@ -79,9 +87,15 @@ fn killed_or_interrupted_extract_leaves_no_partial_output() {
     let out = dir.path().join("out_kill");
     std::fs::create_dir(&out).unwrap();
     let mut child = start_extract(&sim, &out);
-    let_it_run(&mut child, 1.5);
+    let_it_run(&mut child, 1.0);
     child.kill().unwrap();
-    child.wait().unwrap();
+    let status = child.wait().unwrap();
+    // Killed by the signal, not finished: no exit code.
+    assert_eq!(
+        status.code(),
+        None,
+        "extract finished before SIGKILL arrived"
+    );
     let left: Vec<String> = entries(&out)
         .into_iter()
         .filter(|n| !n.contains(".echosurf-tmp-"))
@@ -92,7 +106,7 @@ fn killed_or_interrupted_extract_leaves_no_partial_output() {
     let out = dir.path().join("out_int");
     std::fs::create_dir(&out).unwrap();
     let mut child = start_extract(&sim, &out);
-    let_it_run(&mut child, 1.5);
+    let_it_run(&mut child, 1.0);
     let status = Command::new("kill")
         .arg("-INT")
         .arg(child.id().to_string())
