@@ -183,6 +183,28 @@ pub struct PreparedSamples {
     pub pixel_size_mm: [f64; 2],
 }
 
+/// The first stage of both routes: refuses a sequence without images and resolves every frame's pose.
+pub(crate) fn place_frames(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+    options: &ExtractOptions,
+    meter: &mut StageMeter,
+) -> Result<PoseResolution> {
+    if sequence.is_tracking_only() {
+        return Err(Error::InvalidInput(
+            "the sequence has no images (tracking only): nothing to extract a surface from".into(),
+        ));
+    }
+    meter.stage("poses", || {
+        resolve_poses(
+            sequence,
+            calibration,
+            options.reference,
+            std::path::Path::new("<sequence>"),
+        )
+    })
+}
+
 /// Places the frames, segments the bands and turns kept pixels into (decimated) samples.
 pub fn prepare_samples(
     sequence: &TrackedSequence,
@@ -191,19 +213,7 @@ pub fn prepare_samples(
     meter: &mut StageMeter,
     progress: &dyn Progress,
 ) -> Result<PreparedSamples> {
-    if sequence.is_tracking_only() {
-        return Err(Error::InvalidInput(
-            "the sequence has no images (tracking only): nothing to extract a surface from".into(),
-        ));
-    }
-    let poses = meter.stage("poses", || {
-        resolve_poses(
-            sequence,
-            calibration,
-            options.reference,
-            std::path::Path::new("<sequence>"),
-        )
-    })?;
+    let poses = place_frames(sequence, calibration, options, meter)?;
     let clip = calibration.and_then(|c| c.clip);
     let masks = meter.stage("segment", || {
         segment_sequence(

@@ -26,7 +26,7 @@ use super::{
     ExtractOptions, ExtractOutput, ExtractReport, ExtractedSurface, IsoLevels, StageCounts,
     UsedParameters, frame_outlines, median_frame_spacing_mm, trust_distance_for,
 };
-use crate::io::{Calibration, TrackedSequence, resolve_poses};
+use crate::io::{Calibration, TrackedSequence};
 use crate::mesh::Mesh;
 use crate::progress::Progress;
 use crate::resources::StageMeter;
@@ -117,19 +117,7 @@ pub(super) fn extract_voxel(
         IsoLevels::Levels(v) => Some(v.clone()),
         IsoLevels::Auto => None,
     };
-    if sequence.is_tracking_only() {
-        return Err(Error::InvalidInput(
-            "the sequence has no images (tracking only): nothing to extract a surface from".into(),
-        ));
-    }
-    let poses = meter.stage("poses", || {
-        resolve_poses(
-            sequence,
-            calibration,
-            options.reference,
-            std::path::Path::new("<sequence>"),
-        )
-    })?;
+    let poses = super::place_frames(sequence, calibration, options, &mut meter)?;
     let mut counts = StageCounts {
         frames: sequence.frames.len(),
         frames_used: poses.poses.len(),
