@@ -40,6 +40,28 @@ impl SampleSet {
     }
 }
 
+/// The placed frames that have a mask, once each, in frame order; `None` when the masks do not fit the
+/// sequence or it has no images.
+fn frames_in_order<'a>(
+    sequence: &TrackedSequence,
+    poses: &'a PoseResolution,
+    masks: &BandMasks,
+) -> Option<Vec<&'a crate::io::FramePose>> {
+    if (masks.width, masks.height) != (sequence.width, sequence.height)
+        || sequence.is_tracking_only()
+    {
+        return None;
+    }
+    let mut ordered: Vec<_> = poses
+        .poses
+        .iter()
+        .filter(|p| p.frame_index < masks.masks.len() && p.frame_index < sequence.frames.len())
+        .collect();
+    ordered.sort_by_key(|p| p.frame_index);
+    ordered.dedup_by_key(|p| p.frame_index);
+    Some(ordered)
+}
+
 /// Every kept pixel of every frame with a pose, mapped to the world. Frames without a pose contribute
 /// nothing (their masks are empty anyway); masks that do not match the sequence size are skipped.
 pub fn collect_samples(
@@ -49,16 +71,9 @@ pub fn collect_samples(
 ) -> SampleSet {
     let (w, h) = (sequence.width, sequence.height);
     let mut set = SampleSet::default();
-    if (masks.width, masks.height) != (w, h) || sequence.is_tracking_only() {
+    let Some(ordered) = frames_in_order(sequence, poses, masks) else {
         return set;
-    }
-    let mut ordered: Vec<_> = poses
-        .poses
-        .iter()
-        .filter(|p| p.frame_index < masks.masks.len() && p.frame_index < sequence.frames.len())
-        .collect();
-    ordered.sort_by_key(|p| p.frame_index);
-    ordered.dedup_by_key(|p| p.frame_index);
+    };
     let total: usize = ordered
         .iter()
         .map(|p| {
@@ -105,16 +120,9 @@ pub fn collect_samples_binned(
     }
     let (w, h) = (sequence.width, sequence.height);
     let mut set = SampleSet::default();
-    if (masks.width, masks.height) != (w, h) || sequence.is_tracking_only() {
+    let Some(ordered) = frames_in_order(sequence, poses, masks) else {
         return set;
-    }
-    let mut ordered: Vec<_> = poses
-        .poses
-        .iter()
-        .filter(|p| p.frame_index < masks.masks.len() && p.frame_index < sequence.frames.len())
-        .collect();
-    ordered.sort_by_key(|p| p.frame_index);
-    ordered.dedup_by_key(|p| p.frame_index);
+    };
     for pose in ordered {
         let f = pose.frame_index;
         let mask = &masks.masks[f];
