@@ -14,6 +14,7 @@
 mod bench_data;
 mod direct;
 mod fast;
+mod kernel;
 mod merge;
 mod model;
 mod pu;

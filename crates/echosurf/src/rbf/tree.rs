@@ -13,6 +13,8 @@
 //! each side's interpolation error matches the longest side's.
 
 use glam::DVec3;
+
+pub(crate) use super::kernel::{sum_r, sum_r_grad};
 use rayon::prelude::*;
 
 /// Accuracy/speed parameters of the treecode.
@@ -560,56 +562,6 @@ pub(crate) fn split_by_sizes<'a, T>(mut data: &'a mut [T], sizes: &[usize]) -> V
         data = tail;
     }
     out
-}
-
-/// `sum_j q_j |t - s_j|`, four independent accumulators so the loop vectorises.
-#[inline]
-pub(crate) fn sum_r(t: DVec3, sx: &[f64], sy: &[f64], sz: &[f64], q: &[f64]) -> f64 {
-    let n = q.len();
-    let (sx, sy, sz) = (&sx[..n], &sy[..n], &sz[..n]);
-    let mut acc = [0.0f64; 4];
-    let chunks = n / 4;
-    for c in 0..chunks {
-        for l in 0..4 {
-            let j = c * 4 + l;
-            let dx = t.x - sx[j];
-            let dy = t.y - sy[j];
-            let dz = t.z - sz[j];
-            acc[l] += q[j] * (dx * dx + dy * dy + dz * dz).sqrt();
-        }
-    }
-    for j in chunks * 4..n {
-        let dx = t.x - sx[j];
-        let dy = t.y - sy[j];
-        let dz = t.z - sz[j];
-        acc[0] += q[j] * (dx * dx + dy * dy + dz * dz).sqrt();
-    }
-    (acc[0] + acc[1]) + (acc[2] + acc[3])
-}
-
-/// Value and gradient (with respect to t) of `sum_j q_j |t - s_j|`; the gradient of |t - s| at t = s is
-/// taken as zero (the kernel's subgradient there).
-#[inline]
-pub(crate) fn sum_r_grad(t: DVec3, sx: &[f64], sy: &[f64], sz: &[f64], q: &[f64]) -> (f64, DVec3) {
-    let n = q.len();
-    let (sx, sy, sz) = (&sx[..n], &sy[..n], &sz[..n]);
-    let (mut v, mut gx, mut gy, mut gz) = ([0.0f64; 2], [0.0f64; 2], [0.0f64; 2], [0.0f64; 2]);
-    for j in 0..n {
-        let l = j & 1;
-        let dx = t.x - sx[j];
-        let dy = t.y - sy[j];
-        let dz = t.z - sz[j];
-        let r = (dx * dx + dy * dy + dz * dz).sqrt();
-        let inv = if r > 0.0 { q[j] / r } else { 0.0 };
-        v[l] += q[j] * r;
-        gx[l] += inv * dx;
-        gy[l] += inv * dy;
-        gz[l] += inv * dz;
-    }
-    (
-        v[0] + v[1],
-        DVec3::new(gx[0] + gx[1], gy[0] + gy[1], gz[0] + gz[1]),
-    )
 }
 
 fn grid_dims(lo: DVec3, hi: DVec3, params: TreecodeParams) -> [u8; 3] {
