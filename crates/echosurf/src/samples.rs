@@ -31,6 +31,15 @@ impl SampleSet {
         self.positions.is_empty()
     }
 
+    /// The samples at `indices`, in that order.
+    pub fn select(&self, indices: &[usize]) -> SampleSet {
+        SampleSet {
+            positions: indices.iter().map(|&i| self.positions[i]).collect(),
+            intensities: indices.iter().map(|&i| self.intensities[i]).collect(),
+            frame_of_sample: indices.iter().map(|&i| self.frame_of_sample[i]).collect(),
+        }
+    }
+
     /// The samples as a point cloud with a float `intensity` property (for `write_point_cloud`).
     pub fn to_point_cloud(&self) -> PointCloud {
         PointCloud {
@@ -114,15 +123,36 @@ pub fn collect_samples_binned(
     masks: &BandMasks,
     bin_px: [usize; 2],
 ) -> SampleSet {
+    collect_samples_binned_with_cells(sequence, poses, masks, bin_px).0
+}
+
+/// [`collect_samples_binned`], and for every sample its block: `[column, row]` of the block grid of its
+/// frame (block `[i, j]` covers pixels `u in i * bin_px[0]..`, `v in j * bin_px[1]..`).
+pub fn collect_samples_binned_with_cells(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    masks: &BandMasks,
+    bin_px: [usize; 2],
+) -> (SampleSet, Vec<[u32; 2]>) {
     let [bu, bv] = bin_px.map(|b| b.max(1));
-    if bu == 1 && bv == 1 {
-        return collect_samples(sequence, poses, masks);
-    }
     let (w, h) = (sequence.width, sequence.height);
     let mut set = SampleSet::default();
+    let mut cells = Vec::new();
     let Some(ordered) = frames_in_order(sequence, poses, masks) else {
-        return set;
+        return (set, cells);
     };
+    if bu == 1 && bv == 1 {
+        set = collect_samples(sequence, poses, masks);
+        for pose in ordered {
+            let mask = &masks.masks[pose.frame_index];
+            cells.extend(
+                (0..w * h)
+                    .filter(|&i| mask[i] != 0)
+                    .map(|i| [(i % w) as u32, (i / w) as u32]),
+            );
+        }
+        return (set, cells);
+    }
     for pose in ordered {
         let f = pose.frame_index;
         let mask = &masks.masks[f];
@@ -149,19 +179,109 @@ pub fn collect_samples_binned(
                         )));
                     set.intensities.push((si / k) as f32);
                     set.frame_of_sample.push(f as u32);
+                    cells.push([(u0 / bu) as u32, (v0 / bv) as u32]);
                 }
             }
         }
     }
-    set
+    (set, cells)
+}
+
+/// Flags the samples near an echo: within `radius_cells = [columns, rows]` blocks (a box, in the same
+/// frame) of a sample at least as bright as `level`. These are the samples that place the iso-surface:
+/// the echo itself and the dark pixels on either side of it where the field must fall below the level.
+/// `cells` are the blocks of [`collect_samples_binned_with_cells`].
+pub fn near_echo_flags(
+    set: &SampleSet,
+    cells: &[[u32; 2]],
+    level: f32,
+    radius_cells: [usize; 2],
+) -> Vec<bool> {
+    let n = set.len().min(cells.len());
+    let mut flags = vec![false; set.len()];
+    let mut start = 0;
+    while start < n {
+        let frame = set.frame_of_sample[start];
+        let end = (start..n)
+            .find(|&i| set.frame_of_sample[i] != frame)
+            .unwrap_or(n);
+        let run = &cells[start..end];
+        let cols = run.iter().map(|c| c[0] as usize + 1).max().unwrap_or(0);
+        let rows = run.iter().map(|c| c[1] as usize + 1).max().unwrap_or(0);
+        // Bright blocks, dilated along rows then columns (a separable box).
+        let mut bright = vec![false; cols * rows];
+        for (c, &x) in run.iter().zip(&set.intensities[start..end]) {
+            if x >= level {
+                bright[c[1] as usize * cols + c[0] as usize] = true;
+            }
+        }
+        let mut across = vec![false; cols * rows];
+        for r in 0..rows {
+            let row = &bright[r * cols..(r + 1) * cols];
+            for (c, out) in across[r * cols..(r + 1) * cols].iter_mut().enumerate() {
+                let lo = c.saturating_sub(radius_cells[0]);
+                let hi = (c + radius_cells[0]).min(cols - 1);
+                *out = row[lo..=hi].iter().any(|&b| b);
+            }
+        }
+        for (i, c) in (start..end).zip(run) {
+            let (col, row) = (c[0] as usize, c[1] as usize);
+            let lo = row.saturating_sub(radius_cells[1]);
+            let hi = (row + radius_cells[1]).min(rows - 1);
+            flags[i] = (lo..=hi).any(|r| across[r * cols + col]);
+        }
+        start = end;
+    }
+    flags
+}
+
+/// `target` samples (all when there are fewer), the flagged ones first: up to `max_flagged` of them (a
+/// random choice when there are more), the rest of the budget a random choice of the others (and more
+/// flagged ones if the others run out). The paper's random deletion spends the budget evenly over the
+/// band, which is mostly background; a thin echo then keeps too few samples to stay thin and bright in
+/// the fit, and the iso-surface breaks up. Deterministic in `seed`; samples stay in their order.
+pub fn priority_decimate(
+    set: &SampleSet,
+    flags: &[bool],
+    target: usize,
+    max_flagged: usize,
+    seed: u64,
+) -> SampleSet {
+    if target >= set.len() || flags.len() != set.len() {
+        return random_decimate(set, target, seed);
+    }
+    let (near, far): (Vec<usize>, Vec<usize>) = (0..set.len()).partition(|&i| flags[i]);
+    let take_near = max_flagged
+        .max(target.saturating_sub(far.len()))
+        .min(near.len())
+        .min(target);
+    let mut idx: Vec<usize> = random_indices(near.len(), take_near, seed)
+        .into_iter()
+        .map(|k| near[k])
+        .collect();
+    idx.extend(
+        random_indices(far.len(), target - take_near, seed ^ 0x9e37_79b9_7f4a_7c15)
+            .into_iter()
+            .map(|k| far[k]),
+    );
+    idx.sort_unstable();
+    set.select(&idx)
 }
 
 /// At most `target` samples chosen uniformly at random without replacement, in their original order.
 /// Deterministic in `seed` (ChaCha8; Floyd's algorithm over indices, so O(target) random draws).
 pub fn random_decimate(set: &SampleSet, target: usize, seed: u64) -> SampleSet {
-    let n = set.len();
-    if target >= n {
+    if target >= set.len() {
         return set.clone();
+    }
+    set.select(&random_indices(set.len(), target, seed))
+}
+
+/// `target` of the indices `0..n` uniformly at random without replacement, ascending (all of them when
+/// `target >= n`). Floyd's algorithm: O(target) ChaCha8 draws.
+fn random_indices(n: usize, target: usize, seed: u64) -> Vec<usize> {
+    if target >= n {
+        return (0..n).collect();
     }
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut chosen = vec![false; n];
@@ -174,13 +294,7 @@ pub fn random_decimate(set: &SampleSet, target: usize, seed: u64) -> SampleSet {
             chosen[t] = true;
         }
     }
-    let keep = |i: &usize| chosen[*i];
-    let idx: Vec<usize> = (0..n).filter(keep).collect();
-    SampleSet {
-        positions: idx.iter().map(|&i| set.positions[i]).collect(),
-        intensities: idx.iter().map(|&i| set.intensities[i]).collect(),
-        frame_of_sample: idx.iter().map(|&i| set.frame_of_sample[i]).collect(),
-    }
+    (0..n).filter(|&i| chosen[i]).collect()
 }
 
 /// Grey levels of the kept pixels: the background (dark) class, the boundary (bright echo) class, and a
@@ -489,5 +603,95 @@ mod binning_tests {
             collect_samples_binned(&seq, &poses, &masks, [1, 1]).len(),
             7
         );
+        let (with_cells, cells) = collect_samples_binned_with_cells(&seq, &poses, &masks, [2, 2]);
+        assert_eq!(with_cells, set);
+        assert_eq!(cells, vec![[0, 0], [1, 0]]);
+        let (single, cells) = collect_samples_binned_with_cells(&seq, &poses, &masks, [1, 1]);
+        assert_eq!(single.len(), 7);
+        assert_eq!(
+            cells[5],
+            [2, 1],
+            "pixel (1, 1) is dropped: the sixth kept pixel is (2, 1)"
+        );
+        assert_eq!(cells[4], [0, 1]);
+    }
+}
+
+#[cfg(test)]
+mod thinning_tests {
+    use super::*;
+
+    /// Two frames of a 10 x 6 block grid, every block a sample; frame 0 has one bright block at
+    /// (4, 2), frame 1 none. Intensity 100 bright, 10 elsewhere.
+    fn grid() -> (SampleSet, Vec<[u32; 2]>) {
+        let mut set = SampleSet::default();
+        let mut cells = Vec::new();
+        for f in 0..2u32 {
+            for r in 0..6u32 {
+                for c in 0..10u32 {
+                    set.positions.push(DVec3::new(c as f64, r as f64, f as f64));
+                    set.intensities.push(if f == 0 && (c, r) == (4, 2) {
+                        100.0
+                    } else {
+                        10.0
+                    });
+                    set.frame_of_sample.push(f);
+                    cells.push([c, r]);
+                }
+            }
+        }
+        (set, cells)
+    }
+
+    #[test]
+    fn near_echo_flags_are_a_box_around_bright_blocks_in_their_own_frame() {
+        let (set, cells) = grid();
+        let flags = near_echo_flags(&set, &cells, 50.0, [2, 1]);
+        for (i, c) in cells.iter().enumerate() {
+            let expected =
+                set.frame_of_sample[i] == 0 && (2..=6).contains(&c[0]) && (1..=3).contains(&c[1]);
+            assert_eq!(flags[i], expected, "sample {i} at {c:?}");
+        }
+        assert_eq!(flags.iter().filter(|&&f| f).count(), 15);
+        // A level above every sample flags nothing.
+        assert!(
+            !near_echo_flags(&set, &cells, 101.0, [2, 1])
+                .iter()
+                .any(|&f| f)
+        );
+    }
+
+    #[test]
+    fn priority_decimation_keeps_flagged_samples_up_to_their_share() {
+        let (set, cells) = grid();
+        let flags = near_echo_flags(&set, &cells, 50.0, [2, 1]);
+        let flagged = |s: &SampleSet| {
+            s.positions
+                .iter()
+                .filter(|p| p.z == 0.0 && (2.0..=6.0).contains(&p.x) && (1.0..=3.0).contains(&p.y))
+                .count()
+        };
+        // Budget 40, flagged may take 20: all 15 flagged kept, 25 others.
+        let thinned = priority_decimate(&set, &flags, 40, 20, 7);
+        assert_eq!(thinned.len(), 40);
+        assert_eq!(flagged(&thinned), 15);
+        // Flagged capped at 10 of the 15.
+        let capped = priority_decimate(&set, &flags, 40, 10, 7);
+        assert_eq!((capped.len(), flagged(&capped)), (40, 10));
+        // With no share for them, flagged samples only fill what the 105 others cannot.
+        let full = priority_decimate(&set, &flags, 110, 0, 7);
+        assert_eq!((full.len(), flagged(&full)), (110, 5));
+        // Order preserved (positions strictly increase in frame-major raster order), seed-determined.
+        let key = |p: &DVec3| (p.z as i64, p.y as i64, p.x as i64);
+        assert!(
+            thinned
+                .positions
+                .windows(2)
+                .all(|w| key(&w[0]) < key(&w[1]))
+        );
+        assert_eq!(thinned, priority_decimate(&set, &flags, 40, 20, 7));
+        assert_ne!(thinned, priority_decimate(&set, &flags, 40, 20, 8));
+        // Uniform random decimation keeps the flagged ones only in proportion (15 of 120 -> ~5 of 40).
+        assert!(flagged(&random_decimate(&set, 40, 7)) < 15);
     }
 }

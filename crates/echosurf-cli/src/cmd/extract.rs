@@ -57,6 +57,10 @@ pub struct Args {
     /// Average kept pixels over blocks of about this size (mm) before decimation; 0 = single pixels.
     #[arg(long, default_value_t = 0.4)]
     pub sample_bin: f64,
+    /// Echo-priority thinning: keep the samples within this many mm of an echo first (up to half the
+    /// budget), the rest at random; 0 = the paper's uniform random decimation.
+    #[arg(long, default_value_t = pipeline::DEFAULT_ECHO_MARGIN_MM)]
+    pub echo_margin: f64,
     /// Seed of the random decimation (and of everything else random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -196,6 +200,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         trust_distance_mm: args.trust_distance,
         sample_bin_mm: args.sample_bin,
+        echo_margin_mm: echo_margin(args.echo_margin)?,
         memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
     };
     let progress = BarProgress::new();
@@ -363,4 +368,14 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
+}
+
+/// `--echo-margin`: 0 selects uniform thinning; negative or non-finite is an error.
+fn echo_margin(mm: f64) -> anyhow::Result<Option<f64>> {
+    if !(mm.is_finite() && mm >= 0.0) {
+        anyhow::bail!(
+            "--echo-margin must be a distance in mm >= 0 (0 = uniform thinning), got {mm}"
+        );
+    }
+    Ok((mm > 0.0).then_some(mm))
 }

@@ -277,6 +277,8 @@ pub(super) fn extract_voxel(
                 .map(|c| c.pixel_size_mm())
                 .unwrap_or([f64::NAN, f64::NAN]),
             median_frame_spacing_mm: spacing,
+            sample_bin_mm: options.sample_bin_mm,
+            echo_margin_mm: None,
             segment: None,
         },
         levels: intensity_levels,
