@@ -157,7 +157,7 @@ pub fn memory_budget_bytes(mb: Option<f64>) -> anyhow::Result<u64> {
     }
 }
 
-fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
+pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
     Ok(match text.to_ascii_lowercase().as_str() {
         "auto" => ReferenceChoice::Auto,
         "tracker" => ReferenceChoice::Tracker,
@@ -371,7 +371,7 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
 }
 
 /// `--echo-margin`: 0 selects uniform thinning; negative or non-finite is an error.
-fn echo_margin(mm: f64) -> anyhow::Result<Option<f64>> {
+pub(crate) fn echo_margin(mm: f64) -> anyhow::Result<Option<f64>> {
     if !(mm.is_finite() && mm >= 0.0) {
         anyhow::bail!(
             "--echo-margin must be a distance in mm >= 0 (0 = uniform thinning), got {mm}"
