@@ -91,6 +91,16 @@ pub struct EdgelSelection {
     pub relative_floor: f32,
     pub reference_at_least: f32,
     pub polarity: EdgePolarity,
+    /// Keep only the strongest edgel of each column (a boundary crosses a column once; see
+    /// `SegmentOptions::edgel_chaining`).
+    pub per_column: bool,
+    /// With `per_column`: an edgel weaker than the floor is still kept if it is at least `weak_fraction`
+    /// of the floor and chained to an edgel above the floor through edgels of consecutive columns whose
+    /// rows differ by at most `link_rows` (hysteresis). 1 (or `link_rows` 0) = no chaining.
+    pub weak_fraction: f32,
+    pub link_rows: usize,
+    /// With `per_column`: chains spanning fewer columns are dropped (speckle grains are short).
+    pub min_chain_columns: usize,
 }
 
 /// One edgel: a local maximum along its column of the vertical gradient magnitude.
@@ -121,6 +131,8 @@ pub fn strongest_column_edgels(
         relative_floor,
         reference_at_least,
         polarity,
+        per_column,
+        ..
     } = *selection;
     out.clear();
     if height < 5 || width == 0 || count == 0 {
@@ -150,6 +162,19 @@ pub fn strongest_column_edgels(
             found
         })
         .collect();
+    if per_column {
+        // The strongest candidate of each column (ties: the upper one, found first in row order).
+        let mut best: Vec<Option<Edgel>> = vec![None; width];
+        for r in rows {
+            for e in r {
+                let slot = &mut best[e.index as usize % width];
+                if slot.is_none_or(|b| e.strength > b.strength) {
+                    *slot = Some(e);
+                }
+            }
+        }
+        return chained_column_edgels(&best, width, selection, out);
+    }
     for r in rows {
         out.extend(r);
     }
@@ -170,6 +195,70 @@ pub fn strongest_column_edgels(
         if relative_floor > 0.0 {
             let floor = relative_floor * reference.max(reference_at_least);
             out.retain(|e| e.strength >= floor);
+        }
+    }
+    out.sort_unstable_by_key(|e| e.index);
+    reference
+}
+
+/// Selection on one candidate per column (`best[u]`): the M strongest, then the relative floor with
+/// hysteresis along chains of neighbouring columns. Returns the reference strength (top 5 %).
+fn chained_column_edgels(
+    best: &[Option<Edgel>],
+    width: usize,
+    selection: &EdgelSelection,
+    out: &mut Vec<Edgel>,
+) -> f32 {
+    let order = |a: &Edgel, b: &Edgel| {
+        b.strength
+            .total_cmp(&a.strength)
+            .then(a.index.cmp(&b.index))
+    };
+    let mut ranked: Vec<Edgel> = best.iter().flatten().copied().collect();
+    if ranked.is_empty() {
+        return 0.0;
+    }
+    ranked.sort_unstable_by(order);
+    ranked.truncate(selection.count);
+    let reference = ranked[ranked.len() / 20].strength;
+    let floor = selection.relative_floor * reference.max(selection.reference_at_least);
+    // Columns whose candidate survived the M cut.
+    let mut in_m = vec![false; width];
+    for e in &ranked {
+        in_m[e.index as usize % width] = true;
+    }
+    let weak_floor = if selection.link_rows == 0 {
+        floor
+    } else {
+        floor * selection.weak_fraction.min(1.0)
+    };
+    let candidate = |u: usize| best[u].filter(|e| in_m[u] && e.strength >= weak_floor);
+    let row = |e: &Edgel| (e.index as usize / width) as i64;
+    // Runs of consecutive columns whose candidates are within `link_rows` rows of each other.
+    let mut u = 0;
+    while u < width {
+        let Some(first) = candidate(u) else {
+            u += 1;
+            continue;
+        };
+        let start = u;
+        let mut strong = first.strength >= floor;
+        let mut prev = first;
+        u += 1;
+        while u < width {
+            match candidate(u) {
+                Some(e) if (row(&e) - row(&prev)).unsigned_abs() as usize <= selection.link_rows => {
+                    strong |= e.strength >= floor;
+                    prev = e;
+                    u += 1;
+                }
+                _ => break,
+            }
+        }
+        if strong && u - start >= selection.min_chain_columns {
+            out.extend((start..u).filter_map(candidate).filter(|e| {
+                selection.link_rows > 0 || e.strength >= floor
+            }));
         }
     }
     out.sort_unstable_by_key(|e| e.index);
@@ -337,6 +426,10 @@ mod tests {
             relative_floor: 0.0,
             reference_at_least: 0.0,
             polarity,
+            per_column: false,
+            weak_fraction: 1.0,
+            link_rows: 0,
+            min_chain_columns: 0,
         }
     }
 

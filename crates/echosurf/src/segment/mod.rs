@@ -114,6 +114,9 @@ pub struct SegmentOptions {
     /// and would otherwise fill the rest of the M, spread blobs over the whole band and keep it alive
     /// (the band then percolates through speckle). 0 = the paper's plain M largest. Default 0.35.
     pub min_edgel_relative_strength: f64,
+    /// Beyond the paper: one edgel per column (its strongest candidate) and hysteresis along the boundary
+    /// (see [`EdgelChaining`]). `None` = the paper's M largest over the whole frame.
+    pub edgel_chaining: Option<EdgelChaining>,
     /// Edgels need a vertical gradient above this (grey levels per pixel); 0 keeps any non-flat pixel.
     pub min_edgel_gradient: f64,
     /// Prior inside the carried band, C1 = 1.0.
@@ -154,6 +157,7 @@ impl Default for SegmentOptions {
             edgel_polarity: EdgePolarity::Rising,
             min_edgel_gradient: 0.0,
             min_edgel_relative_strength: 0.35,
+            edgel_chaining: None,
             prior_inside: 1.0,
             prior_outside: 0.2,
             likelihood_sigma: Length::Px(15.0),
@@ -231,6 +235,18 @@ impl SegmentOptions {
         }
         Ok(())
     }
+}
+
+/// Speckle-robust edgels (beyond the paper). A boundary crosses each column once, so each column offers
+/// only its strongest candidate; weak candidates (down to `weak_fraction` of the relative floor) are kept
+/// when they continue a chain of edgels in neighbouring columns (rows at most `link_rows` apart) that
+/// holds at least one edgel above the floor: the faint, steep flanks of a boundary hang on to its strong
+/// echo, while speckle edgels, scattered in depth from column to column, rarely form chains.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EdgelChaining {
+    pub weak_fraction: f64,
+    pub link_rows: usize,
+    pub min_chain_columns: usize,
 }
 
 /// The band for the first frame of each sweep.
@@ -365,6 +381,7 @@ struct Propagator {
     relative_floor: f32,
     reference_decay: f32,
     polarity: EdgePolarity,
+    chaining: Option<EdgelChaining>,
     min_edgels_in_band: usize,
     prior_inside: f32,
     prior_outside: f32,
@@ -405,6 +422,10 @@ impl Propagator {
                 relative_floor: self.relative_floor,
                 reference_at_least: carried,
                 polarity: self.polarity,
+                per_column: self.chaining.is_some(),
+                weak_fraction: self.chaining.map_or(1.0, |c| c.weak_fraction as f32),
+                link_rows: self.chaining.map_or(0, |c| c.link_rows),
+                min_chain_columns: self.chaining.map_or(0, |c| c.min_chain_columns),
             },
             &mut ws.edgels,
         );
@@ -657,6 +678,7 @@ pub fn segment_sequence(
         edgel_count,
         min_edgel_gradient: options.min_edgel_gradient as f32,
         polarity: options.edgel_polarity,
+        chaining: options.edgel_chaining,
         relative_floor: options.min_edgel_relative_strength as f32,
         reference_decay: 0.8,
         min_edgels_in_band: ((options.min_edgels_in_band_fraction * edgel_count as f64).ceil()
