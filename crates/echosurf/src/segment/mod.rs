@@ -151,13 +151,13 @@ pub struct SegmentOptions {
 impl Default for SegmentOptions {
     fn default() -> Self {
         SegmentOptions {
-            smoothing_sigma: Length::Mm(0.5),
+            smoothing_sigma: Length::Mm(1.0),
             edgel_fraction: 0.75,
             edgel_count: None,
             edgel_polarity: EdgePolarity::Rising,
             min_edgel_gradient: 0.0,
             min_edgel_relative_strength: 0.35,
-            edgel_chaining: None,
+            edgel_chaining: Some(EdgelChaining::default()),
             prior_inside: 1.0,
             prior_outside: 0.2,
             likelihood_sigma: Length::Px(15.0),
@@ -246,7 +246,17 @@ impl SegmentOptions {
 pub struct EdgelChaining {
     pub weak_fraction: f64,
     pub link_rows: usize,
-    pub min_chain_columns: usize,
+    pub min_chain_length: Length,
+}
+
+impl Default for EdgelChaining {
+    fn default() -> Self {
+        EdgelChaining {
+            weak_fraction: 0.3,
+            link_rows: 3,
+            min_chain_length: Length::Mm(3.0),
+        }
+    }
 }
 
 /// The band for the first frame of each sweep.
@@ -382,6 +392,7 @@ struct Propagator {
     reference_decay: f32,
     polarity: EdgePolarity,
     chaining: Option<EdgelChaining>,
+    min_chain_columns: usize,
     min_edgels_in_band: usize,
     prior_inside: f32,
     prior_outside: f32,
@@ -425,7 +436,7 @@ impl Propagator {
                 per_column: self.chaining.is_some(),
                 weak_fraction: self.chaining.map_or(1.0, |c| c.weak_fraction as f32),
                 link_rows: self.chaining.map_or(0, |c| c.link_rows),
-                min_chain_columns: self.chaining.map_or(0, |c| c.min_chain_columns),
+                min_chain_columns: self.min_chain_columns,
             },
             &mut ws.edgels,
         );
@@ -587,6 +598,9 @@ pub fn segment_sequence(
         options.likelihood_sigma,
         options.likelihood_truncation,
         options.auto_smoothing_sigma,
+        options
+            .edgel_chaining
+            .map_or(Length::Px(0.0), |c| c.min_chain_length),
     ]
     .iter()
     .any(|l| matches!(l, Length::Mm(_)));
@@ -679,6 +693,9 @@ pub fn segment_sequence(
         min_edgel_gradient: options.min_edgel_gradient as f32,
         polarity: options.edgel_polarity,
         chaining: options.edgel_chaining,
+        min_chain_columns: options
+            .edgel_chaining
+            .map_or(0, |c| c.min_chain_length.to_px(px_size).round() as usize),
         relative_floor: options.min_edgel_relative_strength as f32,
         reference_decay: 0.8,
         min_edgels_in_band: ((options.min_edgels_in_band_fraction * edgel_count as f64).ceil()
