@@ -163,17 +163,19 @@ pub fn strongest_column_edgels(
         })
         .collect();
     if per_column {
-        // The strongest candidate of each column (ties: the upper one, found first in row order).
+        // Every candidate of each column, top to bottom, and the strongest one (ties: the upper one).
+        let mut columns: Vec<Vec<Edgel>> = vec![Vec::new(); width];
         let mut best: Vec<Option<Edgel>> = vec![None; width];
         for r in rows {
             for e in r {
-                let slot = &mut best[e.index as usize % width];
-                if slot.is_none_or(|b| e.strength > b.strength) {
-                    *slot = Some(e);
+                let u = e.index as usize % width;
+                if best[u].is_none_or(|b| e.strength > b.strength) {
+                    best[u] = Some(e);
                 }
+                columns[u].push(e);
             }
         }
-        return chained_column_edgels(&best, width, selection, out);
+        return chained_column_edgels(&best, &columns, width, selection, out);
     }
     for r in rows {
         out.extend(r);
@@ -205,6 +207,7 @@ pub fn strongest_column_edgels(
 /// hysteresis along chains of neighbouring columns. Returns the reference strength (top 5 %).
 fn chained_column_edgels(
     best: &[Option<Edgel>],
+    columns: &[Vec<Edgel>],
     width: usize,
     selection: &EdgelSelection,
     out: &mut Vec<Edgel>,
@@ -247,7 +250,9 @@ fn chained_column_edgels(
         u += 1;
         while u < width {
             match candidate(u) {
-                Some(e) if (row(&e) - row(&prev)).unsigned_abs() as usize <= selection.link_rows => {
+                Some(e)
+                    if (row(&e) - row(&prev)).unsigned_abs() as usize <= selection.link_rows =>
+                {
                     strong |= e.strength >= floor;
                     prev = e;
                     u += 1;
@@ -256,12 +261,41 @@ fn chained_column_edgels(
             }
         }
         if strong && u - start >= selection.min_chain_columns {
-            out.extend((start..u).filter_map(candidate).filter(|e| {
-                selection.link_rows > 0 || e.strength >= floor
-            }));
+            out.extend(
+                (start..u)
+                    .filter_map(candidate)
+                    .filter(|e| selection.link_rows > 0 || e.strength >= floor),
+            );
+            if selection.link_rows > 0 {
+                // Follow the boundary beyond the run's ends where the column's strongest candidate lies
+                // elsewhere: the strongest candidate linked to the last edgel, while one is above the weak floor.
+                for (from, step) in [(start, -1i64), (u - 1, 1i64)] {
+                    let mut prev = candidate(from).expect("run ends hold candidates");
+                    let mut c = from as i64 + step;
+                    while c >= 0 && (c as usize) < width {
+                        let next = columns[c as usize]
+                            .iter()
+                            .filter(|e| {
+                                e.strength >= weak_floor
+                                    && (row(e) - row(&prev)).unsigned_abs() as usize
+                                        <= selection.link_rows
+                            })
+                            .max_by(|a, b| {
+                                a.strength
+                                    .total_cmp(&b.strength)
+                                    .then(b.index.cmp(&a.index))
+                            });
+                        let Some(&e) = next else { break };
+                        out.push(e);
+                        prev = e;
+                        c += step;
+                    }
+                }
+            }
         }
     }
     out.sort_unstable_by_key(|e| e.index);
+    out.dedup_by_key(|e| e.index);
     reference
 }
 
