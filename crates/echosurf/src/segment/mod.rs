@@ -44,6 +44,18 @@
 //! strength so speckle edges do not fill up the M where a boundary is in view; the clip rectangle (pixels
 //! outside it are never kept and never produce edgels), shrunk to the non-black data region of the frames.
 //!
+//! **Speckle-robust edgels** ([`SegmentOptions::chained`], CLI `--chain-edgels`; off by default, so the
+//! extract pipeline keeps its behaviour). Where a boundary's echo is faint (at the top of the image, or
+//! where the surface turns away from the beam) the M largest gradients are mostly speckle, the band
+//! seeds on them and percolates over the frame. [`EdgelChaining`] keeps one candidate per column, keeps
+//! chains of neighbouring-column edgels (rows <= 3 px apart) that hold one edgel above the relative floor,
+//! lets weak edgels (>= 0.3 x the floor) continue such a chain down a fading flank, and drops chains
+//! shorter than 3 mm (speckle grains are ~1 mm wide); it is paired with 1 mm smoothing. Measured on the
+//! simulated sphere (12-frame sweep, 0.2 mm/px, auto init): kept pixels 50.8 % -> 24.6 %, visible
+//! surface (facing the beam within 60 degrees) kept 95.9 % -> 98.8 %, 100 % within 45 degrees. Beyond
+//! ~40 degrees the simulated boundary returns no echo (cos^12 specular model), which is what the last
+//! ~1 % lacks. With `edgel_chaining: None` the paper's M largest are used.
+//!
 //! Speed: per frame one separable Gaussian, one gradient/NMS pass, two exact distance transforms (O(N),
 //! Felzenszwalb-Huttenlocher) and one lookup per pixel (squared distances are integers, so the Gaussian
 //! is a table); rows run in parallel with rayon and all buffers are reused between frames.
@@ -151,13 +163,13 @@ pub struct SegmentOptions {
 impl Default for SegmentOptions {
     fn default() -> Self {
         SegmentOptions {
-            smoothing_sigma: Length::Mm(1.0),
+            smoothing_sigma: Length::Mm(0.5),
             edgel_fraction: 0.75,
             edgel_count: None,
             edgel_polarity: EdgePolarity::Rising,
             min_edgel_gradient: 0.0,
             min_edgel_relative_strength: 0.35,
-            edgel_chaining: Some(EdgelChaining::default()),
+            edgel_chaining: None,
             prior_inside: 1.0,
             prior_outside: 0.2,
             likelihood_sigma: Length::Px(15.0),
@@ -174,6 +186,18 @@ impl Default for SegmentOptions {
 }
 
 impl SegmentOptions {
+    /// The defaults with speckle-robust edgels: [`EdgelChaining`] and 1 mm smoothing (the chains need
+    /// edges that are continuous over a few columns; at 0.5 mm the speckle breaks them up). On simulated
+    /// sweeps this halves the kept pixels (sphere: 50.8 % -> 24.6 %) and keeps more of the steep, faint
+    /// surface (95.9 % -> 98.8 % within 60 degrees of the beam).
+    pub fn chained() -> Self {
+        SegmentOptions {
+            smoothing_sigma: Length::Mm(1.0),
+            edgel_chaining: Some(EdgelChaining::default()),
+            ..Default::default()
+        }
+    }
+
     /// Checks ranges; the message names the offending option.
     pub fn validate(&self) -> Result<()> {
         let bad = |name: &str, why: &str| {
