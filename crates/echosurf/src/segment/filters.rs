@@ -490,4 +490,50 @@ mod tests {
         strongest_column_edgels(&s, w, h, &sel(100, EdgePolarity::Both), &mut edgels);
         assert_eq!(edgels.len(), w);
     }
+
+    #[test]
+    fn chained_edgels_follow_a_fading_step_and_drop_short_speckle_chains() {
+        // A step whose height fades from 100 to 10 across the columns, and a short strong blob.
+        let (w, h) = (60, 40);
+        let mut img = vec![0.0f32; w * h];
+        for v in 0..h {
+            for u in 0..w {
+                if v >= 20 {
+                    img[v * w + u] = 100.0 - 90.0 * u as f32 / (w - 1) as f32;
+                }
+            }
+        }
+        for v in 6..h.min(9) {
+            for u in 40..43 {
+                img[v * w + u] = 150.0;
+            }
+        }
+        let mut tmp = Vec::new();
+        let mut s = Vec::new();
+        smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
+        let chained = EdgelSelection {
+            count: w,
+            min_strength: 0.0,
+            relative_floor: 0.35,
+            reference_at_least: 0.0,
+            polarity: EdgePolarity::Rising,
+            per_column: true,
+            weak_fraction: 0.3,
+            link_rows: 3,
+            min_chain_columns: 8,
+        };
+        let mut edgels = Vec::new();
+        strongest_column_edgels(&s, w, h, &chained, &mut edgels);
+        let on_step = |e: &Edgel| (19..=20).contains(&(e.index as usize / w));
+        // Every column of the step, including its faint end, and nothing of the 3-column blob.
+        assert!(edgels.iter().all(on_step), "{edgels:?}");
+        assert_eq!(edgels.len(), w);
+        // Without hysteresis the faint end falls below the floor.
+        let plain = EdgelSelection {
+            weak_fraction: 1.0,
+            ..chained
+        };
+        strongest_column_edgels(&s, w, h, &plain, &mut edgels);
+        assert!(edgels.len() < w - 10, "{}", edgels.len());
+    }
 }
