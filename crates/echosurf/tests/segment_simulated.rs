@@ -187,8 +187,8 @@ fn segment(sim: &Simulation, poses: &PoseResolution, init: &InitialBand) -> Band
 /// sphere, mean grey at the boundary / 1-3 mm inside / 1-3 mm above in water is 127 / 26 / 5 at 0-10
 /// degrees, 50 / 24 / 15 at 30-40, 28 / 25 / 16 at 40-50 and 25 / 25 / 16 at 50-60 degrees: from 40
 /// degrees on, the surface is only the step from water to the object's own speckle. With chained edgels
-/// the band follows the boundary into that range but not always to 60 degrees, so these tests assert
-/// >= 99 % within 45 degrees and the measured level (minus a margin) within 60 degrees;
+/// the band follows the boundary into that range but not always to 60 degrees, so these tests assert at
+/// least 99 % within 45 degrees and the measured level (minus a margin) within 60 degrees;
 /// `issue_target_sphere_60_degrees` keeps the issue's 60-degree target as an executable, ignored target.
 fn assert_coverage(c: &Coverage, min_near_kept: &[(f64, f64)]) {
     assert!(c.kept_all <= 0.30, "kept {} of all pixels", c.kept_all);
