@@ -91,6 +91,16 @@ pub struct EdgelSelection {
     pub relative_floor: f32,
     pub reference_at_least: f32,
     pub polarity: EdgePolarity,
+    /// Keep only the strongest edgel of each column (a boundary crosses a column once; see
+    /// `SegmentOptions::edgel_chaining`).
+    pub per_column: bool,
+    /// With `per_column`: an edgel weaker than the floor is still kept if it is at least `weak_fraction`
+    /// of the floor and chained to an edgel above the floor through edgels of consecutive columns whose
+    /// rows differ by at most `link_rows` (hysteresis). 1 (or `link_rows` 0) = no chaining.
+    pub weak_fraction: f32,
+    pub link_rows: usize,
+    /// With `per_column`: chains spanning fewer columns are dropped (speckle grains are short).
+    pub min_chain_columns: usize,
 }
 
 /// One edgel: a local maximum along its column of the vertical gradient magnitude.
@@ -121,6 +131,8 @@ pub fn strongest_column_edgels(
         relative_floor,
         reference_at_least,
         polarity,
+        per_column,
+        ..
     } = *selection;
     out.clear();
     if height < 5 || width == 0 || count == 0 {
@@ -150,6 +162,21 @@ pub fn strongest_column_edgels(
             found
         })
         .collect();
+    if per_column {
+        // Every candidate of each column, top to bottom, and the strongest one (ties: the upper one).
+        let mut columns: Vec<Vec<Edgel>> = vec![Vec::new(); width];
+        let mut best: Vec<Option<Edgel>> = vec![None; width];
+        for r in rows {
+            for e in r {
+                let u = e.index as usize % width;
+                if best[u].is_none_or(|b| e.strength > b.strength) {
+                    best[u] = Some(e);
+                }
+                columns[u].push(e);
+            }
+        }
+        return chained_column_edgels(&best, &columns, width, selection, out);
+    }
     for r in rows {
         out.extend(r);
     }
@@ -173,6 +200,102 @@ pub fn strongest_column_edgels(
         }
     }
     out.sort_unstable_by_key(|e| e.index);
+    reference
+}
+
+/// Selection on one candidate per column (`best[u]`): the M strongest, then the relative floor with
+/// hysteresis along chains of neighbouring columns. Returns the reference strength (top 5 %).
+fn chained_column_edgels(
+    best: &[Option<Edgel>],
+    columns: &[Vec<Edgel>],
+    width: usize,
+    selection: &EdgelSelection,
+    out: &mut Vec<Edgel>,
+) -> f32 {
+    let order = |a: &Edgel, b: &Edgel| {
+        b.strength
+            .total_cmp(&a.strength)
+            .then(a.index.cmp(&b.index))
+    };
+    let mut ranked: Vec<Edgel> = best.iter().flatten().copied().collect();
+    if ranked.is_empty() {
+        return 0.0;
+    }
+    ranked.sort_unstable_by(order);
+    ranked.truncate(selection.count);
+    let reference = ranked[ranked.len() / 20].strength;
+    let floor = selection.relative_floor * reference.max(selection.reference_at_least);
+    // Columns whose candidate survived the M cut.
+    let mut in_m = vec![false; width];
+    for e in &ranked {
+        in_m[e.index as usize % width] = true;
+    }
+    let weak_floor = if selection.link_rows == 0 {
+        floor
+    } else {
+        floor * selection.weak_fraction.min(1.0)
+    };
+    let candidate = |u: usize| best[u].filter(|e| in_m[u] && e.strength >= weak_floor);
+    let row = |e: &Edgel| (e.index as usize / width) as i64;
+    // Runs of consecutive columns whose candidates are within `link_rows` rows of each other.
+    let mut u = 0;
+    while u < width {
+        let Some(first) = candidate(u) else {
+            u += 1;
+            continue;
+        };
+        let start = u;
+        let mut strong = first.strength >= floor;
+        let mut prev = first;
+        u += 1;
+        while u < width {
+            match candidate(u) {
+                Some(e)
+                    if (row(&e) - row(&prev)).unsigned_abs() as usize <= selection.link_rows =>
+                {
+                    strong |= e.strength >= floor;
+                    prev = e;
+                    u += 1;
+                }
+                _ => break,
+            }
+        }
+        if strong && u - start >= selection.min_chain_columns {
+            out.extend(
+                (start..u)
+                    .filter_map(candidate)
+                    .filter(|e| selection.link_rows > 0 || e.strength >= floor),
+            );
+            if selection.link_rows > 0 {
+                // Follow the boundary beyond the run's ends where the column's strongest candidate lies
+                // elsewhere: the strongest candidate linked to the last edgel, while one is above the weak floor.
+                for (from, step) in [(start, -1i64), (u - 1, 1i64)] {
+                    let mut prev = candidate(from).expect("run ends hold candidates");
+                    let mut c = from as i64 + step;
+                    while c >= 0 && (c as usize) < width {
+                        let next = columns[c as usize]
+                            .iter()
+                            .filter(|e| {
+                                e.strength >= weak_floor
+                                    && (row(e) - row(&prev)).unsigned_abs() as usize
+                                        <= selection.link_rows
+                            })
+                            .max_by(|a, b| {
+                                a.strength
+                                    .total_cmp(&b.strength)
+                                    .then(b.index.cmp(&a.index))
+                            });
+                        let Some(&e) = next else { break };
+                        out.push(e);
+                        prev = e;
+                        c += step;
+                    }
+                }
+            }
+        }
+    }
+    out.sort_unstable_by_key(|e| e.index);
+    out.dedup_by_key(|e| e.index);
     reference
 }
 
@@ -337,6 +460,10 @@ mod tests {
             relative_floor: 0.0,
             reference_at_least: 0.0,
             polarity,
+            per_column: false,
+            weak_fraction: 1.0,
+            link_rows: 0,
+            min_chain_columns: 0,
         }
     }
 
@@ -362,5 +489,51 @@ mod tests {
         assert!(edgels.is_empty());
         strongest_column_edgels(&s, w, h, &sel(100, EdgePolarity::Both), &mut edgels);
         assert_eq!(edgels.len(), w);
+    }
+
+    #[test]
+    fn chained_edgels_follow_a_fading_step_and_drop_short_speckle_chains() {
+        // A step whose height fades from 100 to 10 across the columns, and a short strong blob.
+        let (w, h) = (60, 40);
+        let mut img = vec![0.0f32; w * h];
+        for v in 0..h {
+            for u in 0..w {
+                if v >= 20 {
+                    img[v * w + u] = 100.0 - 90.0 * u as f32 / (w - 1) as f32;
+                }
+            }
+        }
+        for v in 6..h.min(9) {
+            for u in 40..43 {
+                img[v * w + u] = 150.0;
+            }
+        }
+        let mut tmp = Vec::new();
+        let mut s = Vec::new();
+        smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
+        let chained = EdgelSelection {
+            count: w,
+            min_strength: 0.0,
+            relative_floor: 0.35,
+            reference_at_least: 0.0,
+            polarity: EdgePolarity::Rising,
+            per_column: true,
+            weak_fraction: 0.3,
+            link_rows: 3,
+            min_chain_columns: 8,
+        };
+        let mut edgels = Vec::new();
+        strongest_column_edgels(&s, w, h, &chained, &mut edgels);
+        let on_step = |e: &Edgel| (19..=20).contains(&(e.index as usize / w));
+        // Every column of the step, including its faint end, and nothing of the 3-column blob.
+        assert!(edgels.iter().all(on_step), "{edgels:?}");
+        assert_eq!(edgels.len(), w);
+        // Without hysteresis the faint end falls below the floor.
+        let plain = EdgelSelection {
+            weak_fraction: 1.0,
+            ..chained
+        };
+        strongest_column_edgels(&s, w, h, &plain, &mut edgels);
+        assert!(edgels.len() < w - 10, "{}", edgels.len());
     }
 }

@@ -44,6 +44,18 @@
 //! strength so speckle edges do not fill up the M where a boundary is in view; the clip rectangle (pixels
 //! outside it are never kept and never produce edgels), shrunk to the non-black data region of the frames.
 //!
+//! **Speckle-robust edgels** ([`SegmentOptions::chained`], CLI `--chain-edgels`; off by default, so the
+//! extract pipeline keeps its behaviour). Where a boundary's echo is faint (at the top of the image, or
+//! where the surface turns away from the beam) the M largest gradients are mostly speckle, the band
+//! seeds on them and percolates over the frame. [`EdgelChaining`] keeps one candidate per column, keeps
+//! chains of neighbouring-column edgels (rows <= 3 px apart) that hold one edgel above the relative floor,
+//! lets weak edgels (>= 0.3 x the floor) continue such a chain down a fading flank, and drops chains
+//! shorter than 3 mm (speckle grains are ~1 mm wide); it is paired with 1 mm smoothing. Measured on the
+//! simulated sphere (12-frame sweep, 0.2 mm/px, auto init): kept pixels 50.8 % -> 24.6 %, visible
+//! surface (facing the beam within 60 degrees) kept 95.9 % -> 98.8 %, 100 % within 45 degrees. Beyond
+//! ~40 degrees the simulated boundary returns no echo (cos^12 specular model), which is what the last
+//! ~1 % lacks. With `edgel_chaining: None` the paper's M largest are used.
+//!
 //! Speed: per frame one separable Gaussian, one gradient/NMS pass, two exact distance transforms (O(N),
 //! Felzenszwalb-Huttenlocher) and one lookup per pixel (squared distances are integers, so the Gaussian
 //! is a table); rows run in parallel with rayon and all buffers are reused between frames.
@@ -114,6 +126,9 @@ pub struct SegmentOptions {
     /// and would otherwise fill the rest of the M, spread blobs over the whole band and keep it alive
     /// (the band then percolates through speckle). 0 = the paper's plain M largest. Default 0.35.
     pub min_edgel_relative_strength: f64,
+    /// Beyond the paper: one edgel per column (its strongest candidate) and hysteresis along the boundary
+    /// (see [`EdgelChaining`]). `None` = the paper's M largest over the whole frame.
+    pub edgel_chaining: Option<EdgelChaining>,
     /// Edgels need a vertical gradient above this (grey levels per pixel); 0 keeps any non-flat pixel.
     pub min_edgel_gradient: f64,
     /// Prior inside the carried band, C1 = 1.0.
@@ -154,6 +169,7 @@ impl Default for SegmentOptions {
             edgel_polarity: EdgePolarity::Rising,
             min_edgel_gradient: 0.0,
             min_edgel_relative_strength: 0.35,
+            edgel_chaining: None,
             prior_inside: 1.0,
             prior_outside: 0.2,
             likelihood_sigma: Length::Px(15.0),
@@ -170,6 +186,18 @@ impl Default for SegmentOptions {
 }
 
 impl SegmentOptions {
+    /// The defaults with speckle-robust edgels: [`EdgelChaining`] and 1 mm smoothing (the chains need
+    /// edges that are continuous over a few columns; at 0.5 mm the speckle breaks them up). On simulated
+    /// sweeps this halves the kept pixels (sphere: 50.8 % -> 24.6 %) and keeps more of the steep, faint
+    /// surface (95.9 % -> 98.8 % within 60 degrees of the beam).
+    pub fn chained() -> Self {
+        SegmentOptions {
+            smoothing_sigma: Length::Mm(1.0),
+            edgel_chaining: Some(EdgelChaining::default()),
+            ..Default::default()
+        }
+    }
+
     /// Checks ranges; the message names the offending option.
     pub fn validate(&self) -> Result<()> {
         let bad = |name: &str, why: &str| {
@@ -230,6 +258,28 @@ impl SegmentOptions {
             return bad("prior_outside", "C0 >= T would keep every pixel");
         }
         Ok(())
+    }
+}
+
+/// Speckle-robust edgels (beyond the paper). A boundary crosses each column once, so each column offers
+/// only its strongest candidate; weak candidates (down to `weak_fraction` of the relative floor) are kept
+/// when they continue a chain of edgels in neighbouring columns (rows at most `link_rows` apart) that
+/// holds at least one edgel above the floor: the faint, steep flanks of a boundary hang on to its strong
+/// echo, while speckle edgels, scattered in depth from column to column, rarely form chains.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EdgelChaining {
+    pub weak_fraction: f64,
+    pub link_rows: usize,
+    pub min_chain_length: Length,
+}
+
+impl Default for EdgelChaining {
+    fn default() -> Self {
+        EdgelChaining {
+            weak_fraction: 0.3,
+            link_rows: 3,
+            min_chain_length: Length::Mm(3.0),
+        }
     }
 }
 
@@ -365,6 +415,8 @@ struct Propagator {
     relative_floor: f32,
     reference_decay: f32,
     polarity: EdgePolarity,
+    chaining: Option<EdgelChaining>,
+    min_chain_columns: usize,
     min_edgels_in_band: usize,
     prior_inside: f32,
     prior_outside: f32,
@@ -405,6 +457,10 @@ impl Propagator {
                 relative_floor: self.relative_floor,
                 reference_at_least: carried,
                 polarity: self.polarity,
+                per_column: self.chaining.is_some(),
+                weak_fraction: self.chaining.map_or(1.0, |c| c.weak_fraction as f32),
+                link_rows: self.chaining.map_or(0, |c| c.link_rows),
+                min_chain_columns: self.min_chain_columns,
             },
             &mut ws.edgels,
         );
@@ -566,6 +622,9 @@ pub fn segment_sequence(
         options.likelihood_sigma,
         options.likelihood_truncation,
         options.auto_smoothing_sigma,
+        options
+            .edgel_chaining
+            .map_or(Length::Px(0.0), |c| c.min_chain_length),
     ]
     .iter()
     .any(|l| matches!(l, Length::Mm(_)));
@@ -657,6 +716,10 @@ pub fn segment_sequence(
         edgel_count,
         min_edgel_gradient: options.min_edgel_gradient as f32,
         polarity: options.edgel_polarity,
+        chaining: options.edgel_chaining,
+        min_chain_columns: options
+            .edgel_chaining
+            .map_or(0, |c| c.min_chain_length.to_px(px_size).round() as usize),
         relative_floor: options.min_edgel_relative_strength as f32,
         reference_decay: 0.8,
         min_edgels_in_band: ((options.min_edgels_in_band_fraction * edgel_count as f64).ceil()
