@@ -208,3 +208,65 @@ fn extract_refuses_bad_requests_without_writing() {
         .collect();
     assert!(leftovers.is_empty());
 }
+
+/// `--sheet ridge` moves the proximal sheet of the iso-sheath onto the echo ridge: on the simulated
+/// sphere it lies closer to the true surface than the iso-surface at the same level, and stays a
+/// manifold.
+#[test]
+fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
+    let dir = tempfile::tempdir().unwrap();
+    let (seq, config) = simulate(dir.path());
+    let truth = dir.path().join("truth.ply");
+    let mut medians = Vec::new();
+    for sheet in ["iso", "ridge"] {
+        let mesh = dir.path().join(format!("{sheet}.ply"));
+        let out = echosurf(&[
+            "extract",
+            seq.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+            "--out",
+            mesh.to_str().unwrap(),
+            "--max-samples",
+            "10000",
+            "--sheet",
+            sheet,
+        ]);
+        assert!(
+            out.status.success(),
+            "{sheet}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let cmp = echosurf(&[
+            "compare",
+            mesh.to_str().unwrap(),
+            truth.to_str().unwrap(),
+            "--json",
+        ]);
+        assert!(cmp.status.success(), "{sheet}");
+        let c: serde_json::Value = serde_json::from_slice(&cmp.stdout).unwrap();
+        assert_eq!(c["mesh_oriented_manifold"], true, "{sheet}: {c}");
+        assert!(
+            c["mesh_topology"]["triangles"].as_u64().unwrap() > 100,
+            "{sheet}: {c}"
+        );
+        medians.push(c["accuracy"]["median_mm"].as_f64().unwrap());
+    }
+    eprintln!(
+        "median mesh-to-truth distance: iso {:.3} mm, ridge {:.3} mm",
+        medians[0], medians[1]
+    );
+    assert!(medians[1] < 0.8 * medians[0], "{medians:?}");
+    let bad = echosurf(&[
+        "extract",
+        seq.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--out",
+        dir.path().join("bad.ply").to_str().unwrap(),
+        "--sheet",
+        "middle",
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--sheet middle"));
+}

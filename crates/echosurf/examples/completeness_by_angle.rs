@@ -2,7 +2,8 @@
 //! defaults, and prints the completeness (share of truth within 1 mm of the mesh) per wall, per band of
 //! angle between the truth's normal and the nearest sweeping frame's beam, and per facing sign (outward
 //! normal against the beam: the side facing the probe). Environment overrides: `MAXS` (sample budget),
-//! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`.
+//! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`, `RIDGE=1` (ridge sheet),
+//! `MINCOMP` (smallest piece kept, mm^2), `CHAIN=1` (chained edgels), `SEED`.
 //! `cargo run --release --example completeness_by_angle -- duck [mesh.ply]`
 use echosurf::metrics::{CompareOptions, compare_meshes, triangle_mask};
 use echosurf::pipeline::{self, ExtractOptions};
@@ -17,7 +18,10 @@ fn main() -> echosurf::Result<()> {
     };
     let sim_options = SimulationOptions {
         phantom: kind,
-        seed: 1,
+        seed: std::env::var("SEED")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(1),
         ..SimulationOptions::default()
     };
     let sim = simulate(&sim_options, &NoProgress)?;
@@ -34,6 +38,15 @@ fn main() -> echosurf::Result<()> {
     }
     if let Some(v) = env("ECHO") {
         options.echo_margin_mm = if v > 0.0 { Some(v) } else { None };
+    }
+    if env("RIDGE") == Some(1.0) {
+        options.sheet = echosurf::pipeline::Sheet::EchoRidge;
+    }
+    if let Some(v) = env("MINCOMP") {
+        options.min_component_area_mm2 = v;
+    }
+    if env("CHAIN") == Some(1.0) {
+        options.segment = echosurf::segment::SegmentOptions::chained();
     }
     if let Some(v) = env("BIN") {
         options.sample_bin_mm = v;

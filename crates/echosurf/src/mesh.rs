@@ -167,6 +167,87 @@ impl Mesh {
         topo
     }
 
+    /// Removes the edge-connected components whose area is below `min_area_mm2` (isolated speckle blobs
+    /// and shreds of a surface) and the vertices no triangle uses any more. Returns the triangles removed.
+    pub fn remove_small_components(&mut self, min_area_mm2: f64) -> usize {
+        let n = self.vertices.len();
+        let faces = self.triangles.len();
+        let mut parent: Vec<usize> = (0..faces).collect();
+        fn find(parent: &mut [usize], mut i: usize) -> usize {
+            while parent[i] != i {
+                parent[i] = parent[parent[i]];
+                i = parent[i];
+            }
+            i
+        }
+        let mut first_face_of_edge: std::collections::HashMap<(u32, u32), usize> =
+            std::collections::HashMap::with_capacity(faces * 2);
+        let mut area = vec![0.0f64; faces];
+        for (f, t) in self.triangles.iter().enumerate() {
+            if t.iter().any(|&i| i as usize >= n) {
+                continue;
+            }
+            let [a, b, c] = t.map(|i| self.vertices[i as usize]);
+            area[f] = 0.5 * (b - a).cross(c - a).length();
+            for k in 0..3 {
+                let (x, y) = (t[k], t[(k + 1) % 3]);
+                let key = (x.min(y), x.max(y));
+                match first_face_of_edge.get(&key) {
+                    Some(&g) => {
+                        let (rf, rg) = (find(&mut parent, f), find(&mut parent, g));
+                        if rf != rg {
+                            parent[rf.max(rg)] = rf.min(rg);
+                        }
+                    }
+                    None => {
+                        first_face_of_edge.insert(key, f);
+                    }
+                }
+            }
+        }
+        let mut component_area = vec![0.0f64; faces];
+        for f in 0..faces {
+            let r = find(&mut parent, f);
+            component_area[r] += area[f];
+        }
+        let keep: Vec<bool> = (0..faces)
+            .map(|f| {
+                let r = find(&mut parent, f);
+                self.triangles[f].iter().all(|&i| (i as usize) < n)
+                    && component_area[r] >= min_area_mm2
+            })
+            .collect();
+        let removed = keep.iter().filter(|&&k| !k).count();
+        if removed == 0 {
+            return 0;
+        }
+        let mut index = vec![u32::MAX; n];
+        let mut vertices = Vec::new();
+        let mut normals = Vec::new();
+        let has_normals = self.normals.len() == n;
+        let mut triangles = Vec::with_capacity(faces - removed);
+        for (f, t) in self.triangles.iter().enumerate() {
+            if !keep[f] {
+                continue;
+            }
+            triangles.push(t.map(|i| {
+                let i = i as usize;
+                if index[i] == u32::MAX {
+                    index[i] = vertices.len() as u32;
+                    vertices.push(self.vertices[i]);
+                    if has_normals {
+                        normals.push(self.normals[i]);
+                    }
+                }
+                index[i]
+            }));
+        }
+        self.vertices = vertices;
+        self.normals = normals;
+        self.triangles = triangles;
+        removed
+    }
+
     /// Gives every fan of triangles around a pinched vertex its own copy of the vertex, so a mesh whose
     /// edges are manifold becomes a manifold (with boundary). Pinches arise where clipping to the region
     /// of trust cuts a surface so that two pieces touch at a single vertex. Returns how many vertices
@@ -293,6 +374,33 @@ impl Mesh {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn small_components_are_removed_with_their_vertices() {
+        // A unit square (two triangles, area 1) and a small triangle (area 0.005) apart from it.
+        let mut mesh = Mesh {
+            vertices: vec![
+                DVec3::ZERO,
+                DVec3::X,
+                DVec3::new(1.0, 1.0, 0.0),
+                DVec3::Y,
+                DVec3::new(5.0, 0.0, 0.0),
+                DVec3::new(5.1, 0.0, 0.0),
+                DVec3::new(5.0, 0.1, 0.0),
+            ],
+            normals: vec![DVec3::Z; 7],
+            triangles: vec![[0, 1, 2], [0, 2, 3], [4, 5, 6]],
+        };
+        assert_eq!(mesh.topology().components, 2);
+        assert_eq!(mesh.clone().remove_small_components(0.001), 0);
+        assert_eq!(mesh.remove_small_components(0.5), 1);
+        assert_eq!(mesh.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+        assert_eq!((mesh.vertices.len(), mesh.normals.len()), (4, 4));
+        // Below the square's area, nothing is left.
+        assert_eq!(mesh.remove_small_components(1.5), 2);
+        assert!(mesh.is_empty() && mesh.vertices.is_empty());
+    }
+
     use super::*;
 
     fn tetrahedron() -> Mesh {

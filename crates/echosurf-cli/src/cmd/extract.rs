@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use echosurf::io::{self, ReferenceChoice};
 use echosurf::pipeline::{
-    self, ExtractOptions, ExtractOutput, IsoLevels, Method, VoxelRouteOptions,
+    self, ExtractOptions, ExtractOutput, IsoLevels, Method, Sheet, VoxelRouteOptions,
 };
 use echosurf::rbf::FitOptions;
 use echosurf::render::{RenderOptions, render_views, write_png};
@@ -61,6 +61,13 @@ pub struct Args {
     /// budget), the rest at random; 0 = the paper's uniform random decimation.
     #[arg(long, default_value_t = pipeline::DEFAULT_ECHO_MARGIN_MM)]
     pub echo_margin: f64,
+    /// Output surface: `iso` (the iso-surface, a sheath of two sheets around a thin echo) or `ridge`
+    /// (its proximal sheet moved onto the echo's ridge: closer to the boundary, fewer of its parts).
+    #[arg(long, default_value = "iso")]
+    pub sheet: String,
+    /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all.
+    #[arg(long, default_value_t = pipeline::DEFAULT_MIN_COMPONENT_AREA_MM2)]
+    pub min_component_area: f64,
     /// Seed of the random decimation (and of everything else random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -201,6 +208,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         trust_distance_mm: args.trust_distance,
         sample_bin_mm: args.sample_bin,
         echo_margin_mm: echo_margin(args.echo_margin)?,
+        sheet: match args.sheet.to_ascii_lowercase().as_str() {
+            "iso" => Sheet::Iso,
+            "ridge" => Sheet::EchoRidge,
+            other => anyhow::bail!("--sheet {other}: expected iso or ridge"),
+        },
+        min_component_area_mm2: if args.min_component_area.is_finite()
+            && args.min_component_area >= 0.0
+        {
+            args.min_component_area
+        } else {
+            anyhow::bail!("--min-component-area must be an area in mm^2 >= 0")
+        },
         memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
     };
     let progress = BarProgress::new();

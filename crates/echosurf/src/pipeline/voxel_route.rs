@@ -279,6 +279,8 @@ pub(super) fn extract_voxel(
             median_frame_spacing_mm: spacing,
             sample_bin_mm: options.sample_bin_mm,
             echo_margin_mm: None,
+            sheet: super::Sheet::Iso,
+            min_component_area_mm2: 0.0,
             segment: None,
         },
         levels: intensity_levels,

@@ -10,6 +10,7 @@ mod clustering;
 mod follow;
 mod lattice;
 mod mc;
+mod ridge;
 mod rmt;
 #[cfg(test)]
 mod tests;
@@ -19,7 +20,9 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::mesh::Mesh;
+
 use crate::{Error, Result};
+pub use ridge::{RidgeOptions, proximal_sheet_on_ridge};
 
 /// A scalar field the surfacer can sample: values and gradients at many points at once (batches let a
 /// fast RBF evaluator amortise its tree walks).
