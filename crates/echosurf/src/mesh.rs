@@ -206,9 +206,9 @@ impl Mesh {
             }
         }
         let mut component_area = vec![0.0f64; faces];
-        for f in 0..faces {
+        for (f, a) in area.iter().enumerate() {
             let r = find(&mut parent, f);
-            component_area[r] += area[f];
+            component_area[r] += a;
         }
         let keep: Vec<bool> = (0..faces)
             .map(|f| {
