@@ -13,9 +13,6 @@ use rayon::prelude::*;
 use super::ScalarField;
 use crate::mesh::Mesh;
 
-/// Passes that give vertices without a maximum in reach the mean shift of their neighbours.
-const FILL_PASSES: usize = 4;
-
 /// How [`proximal_sheet_on_ridge`] searches.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RidgeOptions {
@@ -44,10 +41,13 @@ impl Default for RidgeOptions {
     }
 }
 
-/// The proximal sheet of `mesh` (an iso-surface of `field`) moved onto the ridge of `field` along the
-/// beam. `beam(x)` is the unit direction the ultrasound travels at `x` (away from the probe), `None`
-/// where no frame saw `x` (those vertices are dropped). Triangles keep their vertex order; a triangle
-/// whose normal turns by more than 90 degrees in the move is dropped, and pinched vertices are split.
+/// The sheets of `mesh` (an iso-surface of `field`) moved onto the ridges of `field` along the beam:
+/// every proximal sheet, and the distal sheets whose ridge no proximal sheet reached (the deeper echo of
+/// a wall thinner than the sheath around its two echoes, whose proximal side lies inside the sheath).
+/// `beam(x)` is the unit direction the ultrasound travels at `x` (away from the probe), `None` where no
+/// frame saw `x` (those vertices are dropped). Proximal triangles keep their vertex order, distal ones
+/// are flipped, so normals point toward the probe. A triangle whose normal turns by more than 90
+/// degrees in the move is dropped, and pinched vertices are split.
 pub fn proximal_sheet_on_ridge(
     mesh: &Mesh,
     field: &dyn ScalarField,
@@ -69,22 +69,116 @@ pub fn proximal_sheet_on_ridge(
     let facing: Vec<f64> = (0..n)
         .map(|i| match (directions[i], gradients[i].try_normalize()) {
             (Some(d), Some(g)) => g.dot(d),
-            _ => f64::NEG_INFINITY,
+            _ => f64::NAN,
         })
         .collect();
+    let proximal = snap_side(mesh, field, &directions, &facing, 1.0, options);
+    let distal = snap_side(mesh, field, &directions, &facing, -1.0, options);
+    // Ridge points the proximal sheets reached, bucketed to find the distal duplicates.
+    let reach = DUPLICATE_RIDGE_MM;
+    let cell = |p: DVec3| (p / reach).floor().as_i64vec3().to_array();
+    let mut reached: std::collections::HashMap<[i64; 3], Vec<DVec3>> = Default::default();
+    for t in &proximal.triangles {
+        for &i in t {
+            if let Some(p) = proximal.moved[i as usize] {
+                reached.entry(cell(p)).or_default().push(p);
+            }
+        }
+    }
+    let near_proximal = |p: DVec3| {
+        let c = cell(p);
+        (-1..=1).any(|dx| {
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dz| {
+                    reached
+                        .get(&[c[0] + dx, c[1] + dy, c[2] + dz])
+                        .is_some_and(|v| v.iter().any(|q| q.distance(p) < reach))
+                })
+            })
+        })
+    };
+    let mut out = Mesh::default();
+    let keep_normals = mesh.normals.len() == n;
+    for (side, flip) in [(&proximal, false), (&distal, true)] {
+        let mut index = vec![u32::MAX; n];
+        for t in &side.triangles {
+            let [a, b, c] = t.map(|i| i as usize);
+            let (Some(pa), Some(pb), Some(pc)) = (side.moved[a], side.moved[b], side.moved[c])
+            else {
+                continue;
+            };
+            if flip && [pa, pb, pc].into_iter().any(near_proximal) {
+                continue;
+            }
+            let before =
+                (mesh.vertices[b] - mesh.vertices[a]).cross(mesh.vertices[c] - mesh.vertices[a]);
+            if (pb - pa).cross(pc - pa).dot(before) <= 0.0 {
+                continue;
+            }
+            let mut tri = [0u32; 3];
+            for (slot, (i, p)) in tri.iter_mut().zip([(a, pa), (b, pb), (c, pc)]) {
+                if index[i] == u32::MAX {
+                    index[i] = out.vertices.len() as u32;
+                    out.vertices.push(p);
+                    if keep_normals {
+                        out.normals.push(if flip {
+                            -mesh.normals[i]
+                        } else {
+                            mesh.normals[i]
+                        });
+                    }
+                }
+                *slot = index[i];
+            }
+            if flip {
+                tri.swap(1, 2);
+            }
+            out.triangles.push(tri);
+        }
+    }
+    out.split_pinched_vertices();
+    out
+}
+
+/// Passes that give vertices without a maximum in reach the mean shift of agreeing neighbours.
+const FILL_PASSES: usize = 4;
+/// Neighbour shifts agree when they span at most this (mm).
+const FILL_AGREEMENT_MM: f64 = 0.2;
+
+/// Distal ridge points closer than this to a proximal one are the same echo seen from its far side.
+const DUPLICATE_RIDGE_MM: f64 = 0.5;
+
+/// One side's triangles (by mean facing toward `side` x beam) and its vertices moved to the maximum of
+/// the field along `side` x beam.
+struct SnappedSide {
+    triangles: Vec<[u32; 3]>,
+    moved: Vec<Option<DVec3>>,
+}
+
+fn snap_side(
+    mesh: &Mesh,
+    field: &dyn ScalarField,
+    directions: &[Option<DVec3>],
+    facing: &[f64],
+    side: f64,
+    options: &RidgeOptions,
+) -> SnappedSide {
+    let n = mesh.vertices.len();
     let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
-    // A triangle is proximal by its mean facing (a per-vertex rule frays the sheet's edge on speckle).
-    let candidate_triangles: Vec<[u32; 3]> = mesh
+    // A triangle belongs to the side by its mean facing (a per-vertex rule frays the sheet's edge on
+    // speckle).
+    let triangles: Vec<[u32; 3]> = mesh
         .triangles
         .iter()
         .filter(|t| {
             valid(t)
-                && t.iter().map(|&i| facing[i as usize]).sum::<f64>() >= 3.0 * options.min_facing
+                && side * t.iter().map(|&i| facing[i as usize]).sum::<f64>()
+                    >= 3.0 * options.min_facing
         })
         .copied()
         .collect();
     let mut used = vec![false; n];
-    for t in &candidate_triangles {
+    for t in &triangles {
         t.iter().for_each(|&i| used[i as usize] = true);
     }
     let movers: Vec<usize> = (0..n)
@@ -94,13 +188,17 @@ pub fn proximal_sheet_on_ridge(
     let probes: Vec<DVec3> = movers
         .iter()
         .flat_map(|&i| {
-            let (v, d) = (mesh.vertices[i], directions[i].unwrap_or(DVec3::ZERO));
+            let (v, d) = (
+                mesh.vertices[i],
+                directions[i].unwrap_or(DVec3::ZERO) * side,
+            );
             (0..=steps).map(move |k| v + d * (k as f64 * options.step_mm))
         })
         .collect();
     let mut along = vec![0.0; probes.len()];
     field.values(&probes, &mut along);
-    // Shift (mm) to the maximum along the beam; None when the field rises all the way (or falls at once).
+    // Shift (mm) to the maximum along the search direction; None when the field rises all the way (or
+    // falls at once).
     let mut shift: Vec<Option<f64>> = vec![None; n];
     for (m, &i) in movers.iter().enumerate() {
         let f = &along[m * (steps + 1)..(m + 1) * (steps + 1)];
@@ -122,62 +220,41 @@ pub fn proximal_sheet_on_ridge(
         };
         shift[i] = Some((best as f64 + offset) * options.step_mm);
     }
-    // Vertices that found no maximum take their neighbours' mean shift (holes otherwise fray the sheet).
+    // A vertex that found no maximum takes its neighbours' mean shift when they agree (within
+    // `FILL_AGREEMENT_MM`: neighbours that reached different echoes must not be averaged between them).
     let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
-    for t in &candidate_triangles {
+    for t in &triangles {
         for k in 0..3 {
             let (a, b) = (t[k], t[(k + 1) % 3]);
             neighbours[a as usize].push(b);
             neighbours[b as usize].push(a);
         }
     }
-    let mean_of = |shift: &[Option<f64>], i: usize| {
-        let (sum, count) = neighbours[i]
-            .iter()
-            .filter_map(|&j| shift[j as usize])
-            .fold((0.0, 0usize), |(s, c), t| (s + t, c + 1));
-        (count > 0).then(|| sum / count as f64)
-    };
     for _ in 0..FILL_PASSES {
         let filled: Vec<Option<f64>> = (0..n)
-            .map(|i| match shift[i] {
-                None if used[i] && directions[i].is_some() => mean_of(&shift, i),
-                s => s,
+            .map(|i| {
+                if shift[i].is_some() || !used[i] || directions[i].is_none() {
+                    return shift[i];
+                }
+                let known: Vec<f64> = neighbours[i]
+                    .iter()
+                    .filter_map(|&j| shift[j as usize])
+                    .collect();
+                let (lo, hi) = known
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| {
+                        (a.min(t), b.max(t))
+                    });
+                (!known.is_empty() && hi - lo <= FILL_AGREEMENT_MM)
+                    .then(|| known.iter().sum::<f64>() / known.len() as f64)
             })
             .collect();
         shift = filled;
     }
-    let moved: Vec<Option<DVec3>> = (0..n)
-        .map(|i| Some(mesh.vertices[i] + directions[i]? * shift[i]?))
+    let moved = (0..n)
+        .map(|i| Some(mesh.vertices[i] + directions[i]? * (side * shift[i]?)))
         .collect();
-    let mut index = vec![u32::MAX; n];
-    let mut out = Mesh::default();
-    let keep_normals = mesh.normals.len() == n;
-    for t in &candidate_triangles {
-        let [a, b, c] = t.map(|i| i as usize);
-        let (Some(pa), Some(pb), Some(pc)) = (moved[a], moved[b], moved[c]) else {
-            continue;
-        };
-        let before =
-            (mesh.vertices[b] - mesh.vertices[a]).cross(mesh.vertices[c] - mesh.vertices[a]);
-        if (pb - pa).cross(pc - pa).dot(before) <= 0.0 {
-            continue;
-        }
-        let mut tri = [0u32; 3];
-        for (slot, (i, p)) in tri.iter_mut().zip([(a, pa), (b, pb), (c, pc)]) {
-            if index[i] == u32::MAX {
-                index[i] = out.vertices.len() as u32;
-                out.vertices.push(p);
-                if keep_normals {
-                    out.normals.push(mesh.normals[i]);
-                }
-            }
-            *slot = index[i];
-        }
-        out.triangles.push(tri);
-    }
-    out.split_pinched_vertices();
-    out
+    SnappedSide { triangles, moved }
 }
 
 #[cfg(test)]
@@ -185,27 +262,25 @@ mod tests {
     use super::*;
     use crate::surface::{FnField, SurfaceDomain, SurfaceOptions, extract_surfaces};
 
-    /// A spherical shell echo of radius `r0` (Gaussian profile, sigma 0.25 mm) on a background of 15,
-    /// peak 130: the iso-surface at 50 is two spheres about 0.3 mm inside and outside the shell.
-    fn shell(r0: f64) -> impl Fn(DVec3) -> (f64, DVec3) + Sync {
+    /// Spherical shell echoes of radii `radii` (Gaussian profile, sigma 0.25 mm, peak 115 each) on a
+    /// background of 15: the iso-surface at 50 of one shell is two spheres about 0.3 mm inside and
+    /// outside it; two shells 0.8 mm apart share one sheath (between them the field stays above 50).
+    fn shells(radii: &'static [f64]) -> impl Fn(DVec3) -> (f64, DVec3) + Sync {
         move |x: DVec3| {
             let r = x.length();
             let s = 0.25;
-            let e = (-(r - r0).powi(2) / (2.0 * s * s)).exp();
-            let value = 15.0 + 115.0 * e;
-            let grad = if r > 0.0 {
-                x / r * (115.0 * e * -(r - r0) / (s * s))
-            } else {
-                DVec3::ZERO
-            };
+            let (mut value, mut slope) = (15.0, 0.0);
+            for &r0 in radii {
+                let e = (-(r - r0).powi(2) / (2.0 * s * s)).exp();
+                value += 115.0 * e;
+                slope += 115.0 * e * -(r - r0) / (s * s);
+            }
+            let grad = if r > 0.0 { x / r * slope } else { DVec3::ZERO };
             (value, grad)
         }
     }
 
-    #[test]
-    fn proximal_sheets_move_onto_the_echo_ridge() {
-        let r0 = 6.0;
-        let field = FnField(shell(r0));
+    fn iso_at_50(field: &dyn ScalarField) -> Mesh {
         let domain = SurfaceDomain {
             bounds_min_mm: DVec3::splat(-8.0),
             bounds_max_mm: DVec3::splat(8.0),
@@ -216,9 +291,16 @@ mod tests {
             resolution_mm: 0.25,
             ..SurfaceOptions::default()
         };
-        let iso = extract_surfaces(&field, &[50.0], &domain, &options)
+        extract_surfaces(field, &[50.0], &domain, &options)
             .unwrap()
-            .remove(0);
+            .remove(0)
+    }
+
+    #[test]
+    fn proximal_sheets_move_onto_the_echo_ridge() {
+        let r0 = 6.0;
+        let field = FnField(shells(&[6.0]));
+        let iso = iso_at_50(&field);
         let radii: Vec<f64> = iso.vertices.iter().map(|v| v.length()).collect();
         // The sheath: inner and outer sheets, each ~0.3 mm off the shell.
         assert!(radii.iter().any(|&r| r < r0 - 0.25) && radii.iter().any(|&r| r > r0 + 0.25));
@@ -226,9 +308,11 @@ mod tests {
         let down = |_: DVec3| Some(DVec3::NEG_Z);
         let ridge = proximal_sheet_on_ridge(&iso, &field, &down, &RidgeOptions::default());
         // Kept: the caps within 60 degrees of the beam (facing 0.5) of the outer sheet's top and the
-        // inner sheet's bottom, a quarter of the sheath's area (less a rim of whole triangles).
+        // inner sheet's bottom, a quarter of the sheath's area (less a rim of whole triangles). The
+        // distal caps reach the same ridge and are dropped as duplicates (with them: a half).
         assert!(
-            ridge.triangles.len() > iso.triangles.len() / 5,
+            ridge.triangles.len() > iso.triangles.len() / 5
+                && ridge.triangles.len() < iso.triangles.len() / 3,
             "{}",
             ridge.triangles.len()
         );
@@ -256,6 +340,46 @@ mod tests {
         // Without a beam anywhere, nothing is kept.
         let none = |_: DVec3| None;
         assert!(proximal_sheet_on_ridge(&iso, &field, &none, &RidgeOptions::default()).is_empty());
+    }
+
+    #[test]
+    fn the_deeper_echo_of_a_thin_wall_comes_from_the_distal_sheet() {
+        // Two shells 0.8 mm apart: one sheath around both. From above, its proximal sheet finds the
+        // outer shell (6.8) on top; the inner shell (6.0) on top is only reached from the sheath's inner
+        // (distal) sheet, and must not be lost or duplicated.
+        let field = FnField(shells(&[6.0, 6.8]));
+        let iso = iso_at_50(&field);
+        let down = |_: DVec3| Some(DVec3::NEG_Z);
+        let ridge = proximal_sheet_on_ridge(&iso, &field, &down, &RidgeOptions::default());
+        let top: Vec<f64> = ridge
+            .vertices
+            .iter()
+            .filter(|v| v.z > 4.0)
+            .map(|v| v.length())
+            .collect();
+        let near = |r0: f64| top.iter().filter(|&&r| (r - r0).abs() < 0.03).count();
+        assert!(
+            near(6.0) > 50 && near(6.8) > 50,
+            "{} {}",
+            near(6.0),
+            near(6.8)
+        );
+        assert_eq!(
+            near(6.0) + near(6.8),
+            top.len(),
+            "every top vertex on a shell"
+        );
+        let topo = ridge.topology();
+        assert_eq!((topo.nonmanifold_edges, topo.misoriented_edges), (0, 0));
+        // Normals toward the probe (up) on both top sheets.
+        assert!(
+            ridge
+                .vertices
+                .iter()
+                .zip(&ridge.normals)
+                .filter(|(v, _)| v.z > 4.0)
+                .all(|(_, n)| n.z > 0.0)
+        );
     }
 
     #[test]
