@@ -9,6 +9,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::coarse::CoarseLevel;
 use super::direct::lu_solve;
 use super::tree::{InteractionLists, Treecode, TreecodeParams, split_by_sizes};
 use super::trend::TrendBasis;
@@ -40,6 +41,7 @@ struct Schwarz {
     /// Per leaf: domain points (tree positions) and the `inner x domain` rows of the local inverse.
     domains: Vec<(Vec<u32>, Vec<f32>)>,
     leaf_sizes: Vec<usize>,
+    coarse: Option<CoarseLevel>,
 }
 
 /// Outcome of an iterative solve.
@@ -63,11 +65,21 @@ impl FastSystem {
     ) -> Result<FastSystem> {
         let treecode = Treecode::new(points, params);
         let lists = treecode.interactions(&treecode.tree);
+        let (near, far) = lists.work(&treecode, &treecode.tree);
+        trace(&format!(
+            "n {} params {:?}: near {near} far {far} per target {:.0}+{:.0}",
+            points.len(),
+            params,
+            near as f64 / points.len() as f64,
+            far as f64 / points.len() as f64
+        ));
         let tree_points: Vec<DVec3> = (0..treecode.tree.len())
             .map(|i| treecode.tree.point(i))
             .collect();
         let u = basis.matrix(&tree_points);
+        let t0 = std::time::Instant::now();
         let precond = Schwarz::new(&treecode, smoothing)?;
+        trace(&format!("schwarz setup {:.3}s", t0.elapsed().as_secs_f64()));
         Ok(FastSystem {
             treecode,
             lists,
@@ -84,6 +96,7 @@ impl FastSystem {
 
     /// `(A - wI) l` for tree-ordered `l`.
     fn apply(&self, l: &[f64], out: &mut [f64]) {
+        let _t = Timer::new(&APPLY_NS);
         let proxies = self.treecode.upward(l);
         self.treecode
             .evaluate(&self.treecode.tree, &self.lists, l, &proxies, out, None);
@@ -165,7 +178,7 @@ impl FastSystem {
             let mut w = vec![0.0; n];
             let mut k = 0;
             while k < RESTART && iterations < max_iterations {
-                self.precond.apply(&basis[k], &mut z);
+                self.precond.apply(&self.treecode.tree, &basis[k], &mut z);
                 self.project(&mut z);
                 self.apply(&z, &mut w);
                 self.project(&mut w);
@@ -221,7 +234,7 @@ impl FastSystem {
             for (j, vj) in basis.iter().take(k).enumerate() {
                 axpy(y[j], vj, &mut combo);
             }
-            self.precond.apply(&combo, &mut z);
+            self.precond.apply(&self.treecode.tree, &combo, &mut z);
             self.project(&mut z);
             axpy(1.0, &z, &mut x);
             e = residual(&x, &mut work);
@@ -240,6 +253,13 @@ impl FastSystem {
             }
         }
         progress.finish();
+        trace(&format!(
+            "iterations {iterations}, matvec {:.3}s total ({} calls), precond {:.3}s ({} calls)",
+            APPLY_NS.0.load(Relaxed) as f64 * 1e-9,
+            APPLY_NS.1.load(Relaxed),
+            PRECOND_NS.0.load(Relaxed) as f64 * 1e-9,
+            PRECOND_NS.1.load(Relaxed)
+        ));
         // Trend: d = U^T (f - (A - wI) x).
         self.apply(&x, &mut work);
         let rest: Vec<f64> = f.iter().zip(&work).map(|(a, b)| a - b).collect();
@@ -264,6 +284,7 @@ impl FastSystem {
                 .iter()
                 .map(|(d, b)| d.len() * 4 + b.len() * 4)
                 .sum::<usize>()
+            + self.precond.coarse.as_ref().map_or(0, |c| c.memory_bytes())
     }
 }
 
@@ -306,13 +327,49 @@ impl Schwarz {
             .iter()
             .map(|&l| tree.nodes[l as usize].len())
             .collect();
+        let target: usize = std::env::var("COARSE")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(1000);
+        let t0 = std::time::Instant::now();
+        let coarse = CoarseLevel::new(tree, target, smoothing)?;
+        trace(&format!(
+            "coarse {} points setup {:.3}s",
+            coarse.as_ref().map_or(0, |c| c.len()),
+            t0.elapsed().as_secs_f64()
+        ));
         Ok(Schwarz {
             domains: out,
             leaf_sizes,
+            coarse,
         })
     }
 
-    fn apply(&self, r: &[f64], z: &mut [f64]) {
+    /// Two-level application: coarse solve, residual update, then the local corrections.
+    fn apply(&self, tree: &super::tree::Tree, r: &[f64], z: &mut [f64]) {
+        let _t = Timer::new(&PRECOND_NS);
+        match &self.coarse {
+            None => self.apply_local(r, z),
+            Some(coarse) => {
+                let lc = coarse.solve(r);
+                let mut rest = vec![0.0; r.len()];
+                coarse.product(tree, &lc, &mut rest);
+                rest.par_chunks_mut(4096)
+                    .zip(r.par_chunks(4096))
+                    .for_each(|(a, b)| {
+                        for (ai, bi) in a.iter_mut().zip(b) {
+                            *ai = bi - *ai;
+                        }
+                    });
+                self.apply_local(&rest, z);
+                for (&i, &l) in coarse.index.iter().zip(&lc) {
+                    z[i as usize] += l;
+                }
+            }
+        }
+    }
+
+    fn apply_local(&self, r: &[f64], z: &mut [f64]) {
         let chunks = split_by_sizes(z, &self.leaf_sizes);
         chunks
             .into_par_iter()
@@ -399,4 +456,70 @@ fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
                 *yi += alpha * xi;
             }
         });
+}
+
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+static APPLY_NS: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
+static PRECOND_NS: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
+struct Timer(&'static (AtomicU64, AtomicU64), std::time::Instant);
+impl Timer {
+    fn new(c: &'static (AtomicU64, AtomicU64)) -> Timer {
+        Timer(c, std::time::Instant::now())
+    }
+}
+impl Drop for Timer {
+    fn drop(&mut self) {
+        self.0.0.fetch_add(self.1.elapsed().as_nanos() as u64, Relaxed);
+        self.0.1.fetch_add(1, Relaxed);
+    }
+}
+fn trace(msg: &str) {
+    if std::env::var_os("RBF_TRACE").is_some() {
+        eprintln!("[fast] {msg}");
+    }
+}
+
+#[cfg(test)]
+mod experiment {
+    use super::*;
+    use crate::rbf::{FitOptions, SolverChoice, fit, ultrasound_like_samples};
+
+    #[test]
+    #[ignore]
+    fn treecode_error_vs_params() {
+        let n: usize = std::env::var("N").ok().and_then(|v| v.parse().ok()).unwrap_or(10000);
+        let (pts, vals) = ultrasound_like_samples(n, 1);
+        let opts = FitOptions { solver: SolverChoice::Fast, ..FitOptions::default() };
+        let (model, _) = fit(&pts, &vals, &opts, &crate::progress::NoProgress).unwrap();
+        let c = model.centres().to_vec();
+        let l = model.coefficients().to_vec();
+        let m = c.len();
+        let exact: Vec<f64> = c
+            .par_iter()
+            .map(|&x| c.iter().zip(&l).map(|(y, q)| q * (x - *y).length()).sum())
+            .collect();
+        for theta in [0.5, 0.7, 0.9] {
+            for p in [3usize, 4, 5, 6, 8] {
+                for leaf in [32usize, 64] {
+                    let params = TreecodeParams { theta, nodes_per_side: p, leaf_size: leaf };
+                    let tc = Treecode::new(&c, params);
+                    let lists = tc.interactions(&tc.tree);
+                    let (near, far) = lists.work(&tc, &tc.tree);
+                    let q = tc.tree.to_tree_order(&l);
+                    let t = std::time::Instant::now();
+                    let prox = tc.upward(&q);
+                    let mut out = vec![0.0; m];
+                    tc.evaluate(&tc.tree, &lists, &q, &prox, &mut out, None);
+                    let secs = t.elapsed().as_secs_f64();
+                    let out = tc.tree.to_input_order(&out);
+                    let err = out.iter().zip(&exact).fold(0.0f64, |a, (x, y)| a.max((x - y).abs()));
+                    eprintln!(
+                        "theta {theta} p {p} leaf {leaf}: {secs:.3}s near/t {:.0} far/t {:.0} max err {err:.2e}",
+                        near as f64 / m as f64,
+                        far as f64 / m as f64
+                    );
+                }
+            }
+        }
+    }
 }

@@ -12,6 +12,7 @@
 #![allow(clippy::needless_range_loop)]
 
 mod bench_data;
+mod coarse;
 mod direct;
 mod fast;
 mod merge;
