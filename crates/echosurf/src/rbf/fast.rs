@@ -24,6 +24,9 @@ const RESTART: usize = 40;
 pub(crate) struct FastSystem {
     pub treecode: Treecode,
     lists: InteractionLists,
+    /// Cheaper, less accurate product used inside a GMRES cycle (same tree order); the residual that
+    /// decides convergence always uses the accurate one, so each restart is a step of iterative refinement.
+    inner: Option<(Treecode, InteractionLists)>,
     smoothing: f64,
     /// Trend basis values, row-major `n x rank`, tree order.
     u: Vec<f64>,
@@ -77,12 +80,25 @@ impl FastSystem {
             .map(|i| treecode.tree.point(i))
             .collect();
         let u = basis.matrix(&tree_points);
+        let inner = inner_params(params).map(|p| {
+            let tc = Treecode::new(points, p);
+            debug_assert_eq!(tc.tree.order, treecode.tree.order);
+            let lists = tc.interactions(&tc.tree);
+            let (near, far) = lists.work(&tc, &tc.tree);
+            trace(&format!(
+                "inner {p:?}: per target {:.0}+{:.0}",
+                near as f64 / points.len() as f64,
+                far as f64 / points.len() as f64
+            ));
+            (tc, lists)
+        });
         let t0 = std::time::Instant::now();
         let precond = Schwarz::new(&treecode, smoothing)?;
         trace(&format!("schwarz setup {:.3}s", t0.elapsed().as_secs_f64()));
         Ok(FastSystem {
             treecode,
             lists,
+            inner,
             smoothing,
             u,
             rank: basis.rank(),
@@ -100,6 +116,19 @@ impl FastSystem {
         let proxies = self.treecode.upward(l);
         self.treecode
             .evaluate(&self.treecode.tree, &self.lists, l, &proxies, out, None);
+        for (o, &li) in out.iter_mut().zip(l) {
+            *o -= self.smoothing * li;
+        }
+    }
+
+    /// The inner (cheap) product `(A - wI) l`, or the accurate one without an inner treecode.
+    fn apply_inner(&self, l: &[f64], out: &mut [f64]) {
+        let Some((tc, lists)) = &self.inner else {
+            return self.apply(l, out);
+        };
+        let _t = Timer::new(&INNER_NS);
+        let proxies = tc.upward(l);
+        tc.evaluate(&tc.tree, lists, l, &proxies, out, None);
         for (o, &li) in out.iter_mut().zip(l) {
             *o -= self.smoothing * li;
         }
@@ -150,7 +179,11 @@ impl FastSystem {
         let mut work = vec![0.0; n];
         // True residual e = P (f - (A - wI) x): with d = U^T (f - (A - wI) x) it is the system residual.
         let residual = |x: &[f64], work: &mut Vec<f64>| -> Vec<f64> {
-            self.apply(x, work);
+            if x.iter().all(|&v| v == 0.0) {
+                work.fill(0.0); // a cold start needs no product
+            } else {
+                self.apply(x, work);
+            }
             let mut e: Vec<f64> = f.iter().zip(work.iter()).map(|(a, b)| a - b).collect();
             self.project(&mut e);
             e
@@ -180,7 +213,7 @@ impl FastSystem {
             while k < RESTART && iterations < max_iterations {
                 self.precond.apply(&self.treecode.tree, &basis[k], &mut z);
                 self.project(&mut z);
-                self.apply(&z, &mut w);
+                self.apply_inner(&z, &mut w);
                 self.project(&mut w);
                 let mut col = vec![0.0; k + 2];
                 // Modified Gram-Schmidt, twice for stability with this many vectors.
@@ -254,14 +287,15 @@ impl FastSystem {
         }
         progress.finish();
         trace(&format!(
-            "iterations {iterations}, matvec {:.3}s total ({} calls), precond {:.3}s ({} calls)",
+            "iterations {iterations}, matvec {:.3}s total ({} calls), inner {:.3}s ({} calls), precond {:.3}s ({} calls)",
             APPLY_NS.0.load(Relaxed) as f64 * 1e-9,
             APPLY_NS.1.load(Relaxed),
+            INNER_NS.0.load(Relaxed) as f64 * 1e-9,
+            INNER_NS.1.load(Relaxed),
             PRECOND_NS.0.load(Relaxed) as f64 * 1e-9,
             PRECOND_NS.1.load(Relaxed)
         ));
-        // Trend: d = U^T (f - (A - wI) x).
-        self.apply(&x, &mut work);
+        // Trend: d = U^T (f - (A - wI) x); `work` holds (A - wI) x from the last residual.
         let rest: Vec<f64> = f.iter().zip(&work).map(|(a, b)| a - b).collect();
         let trend = self.trend_coefficients(&rest);
         let rms_residual = norm(&e) / (n as f64).sqrt();
@@ -460,6 +494,7 @@ fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
 
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 static APPLY_NS: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
+static INNER_NS: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
 static PRECOND_NS: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
 struct Timer(&'static (AtomicU64, AtomicU64), std::time::Instant);
 impl Timer {
@@ -473,6 +508,15 @@ impl Drop for Timer {
         self.0.1.fetch_add(1, Relaxed);
     }
 }
+fn inner_params(outer: TreecodeParams) -> Option<TreecodeParams> {
+    let theta: f64 = std::env::var("ITHETA").ok()?.parse().ok()?;
+    let p: usize = std::env::var("IP").ok()?.parse().ok()?;
+    Some(TreecodeParams {
+        theta,
+        nodes_per_side: p,
+        ..outer
+    })
+}
 fn trace(msg: &str) {
     if std::env::var_os("RBF_TRACE").is_some() {
         eprintln!("[fast] {msg}");
@@ -482,41 +526,49 @@ fn trace(msg: &str) {
 #[cfg(test)]
 mod experiment {
     use super::*;
-    use crate::rbf::{FitOptions, SolverChoice, fit, ultrasound_like_samples};
+    use crate::rbf::ultrasound_like_samples;
 
     #[test]
     #[ignore]
     fn treecode_error_vs_params() {
         let n: usize = std::env::var("N").ok().and_then(|v| v.parse().ok()).unwrap_or(10000);
         let (pts, vals) = ultrasound_like_samples(n, 1);
-        let opts = FitOptions { solver: SolverChoice::Fast, ..FitOptions::default() };
-        let (model, _) = fit(&pts, &vals, &opts, &crate::progress::NoProgress).unwrap();
-        let c = model.centres().to_vec();
-        let l = model.coefficients().to_vec();
-        let m = c.len();
-        let exact: Vec<f64> = c
+        let basis = TrendBasis::new(&pts);
+        let sys = FastSystem::new(&pts, 1.0, &basis, TreecodeParams::for_accuracy(1e-4)).unwrap();
+        let f = sys.treecode.tree.to_tree_order(&vals);
+        let mut z = vec![0.0; n];
+        sys.precond.apply(&sys.treecode.tree, &f, &mut z);
+        sys.project(&mut z);
+        let l = sys.treecode.tree.to_input_order(&z);
+        eprintln!("sum |l| {:.3e} max |l| {:.3e}", l.iter().map(|v| v.abs()).sum::<f64>(), l.iter().fold(0.0f64, |a, v| a.max(v.abs())));
+        let probes: Vec<usize> = (0..n).step_by((n / 2000).max(1)).collect();
+        let exact: Vec<f64> = probes
             .par_iter()
-            .map(|&x| c.iter().zip(&l).map(|(y, q)| q * (x - *y).length()).sum())
+            .map(|&i| pts.iter().zip(&l).map(|(y, q)| q * (pts[i] - *y).length()).sum())
             .collect();
-        for theta in [0.5, 0.7, 0.9] {
-            for p in [3usize, 4, 5, 6, 8] {
-                for leaf in [32usize, 64] {
+        let thetas: Vec<f64> = std::env::var("THETAS").ok().map(|v| v.split(',').map(|t| t.parse().unwrap()).collect()).unwrap_or(vec![0.5, 0.7]);
+        let ps: Vec<usize> = std::env::var("PS").ok().map(|v| v.split(',').map(|t| t.parse().unwrap()).collect()).unwrap_or(vec![4, 6, 8]);
+        let leaves: Vec<usize> = std::env::var("LEAVES").ok().map(|v| v.split(',').map(|t| t.parse().unwrap()).collect()).unwrap_or(vec![32, 64]);
+        for &theta in &thetas {
+            for &p in &ps {
+                for &leaf in &leaves {
                     let params = TreecodeParams { theta, nodes_per_side: p, leaf_size: leaf };
-                    let tc = Treecode::new(&c, params);
+                    let tc = Treecode::new(&pts, params);
                     let lists = tc.interactions(&tc.tree);
                     let (near, far) = lists.work(&tc, &tc.tree);
                     let q = tc.tree.to_tree_order(&l);
                     let t = std::time::Instant::now();
                     let prox = tc.upward(&q);
-                    let mut out = vec![0.0; m];
+                    let tu = t.elapsed().as_secs_f64();
+                    let mut out = vec![0.0; n];
                     tc.evaluate(&tc.tree, &lists, &q, &prox, &mut out, None);
                     let secs = t.elapsed().as_secs_f64();
                     let out = tc.tree.to_input_order(&out);
-                    let err = out.iter().zip(&exact).fold(0.0f64, |a, (x, y)| a.max((x - y).abs()));
+                    let err = probes.iter().zip(&exact).fold(0.0f64, |a, (&i, y)| a.max((out[i] - y).abs()));
                     eprintln!(
-                        "theta {theta} p {p} leaf {leaf}: {secs:.3}s near/t {:.0} far/t {:.0} max err {err:.2e}",
-                        near as f64 / m as f64,
-                        far as f64 / m as f64
+                        "theta {theta} p {p} leaf {leaf}: {secs:.3}s (upward {tu:.3}) near/t {:.0} far/t {:.0} max err {err:.2e}",
+                        near as f64 / n as f64,
+                        far as f64 / n as f64
                     );
                 }
             }
