@@ -55,7 +55,8 @@ impl CoarseLevel {
             return Ok(None);
         }
         let u = basis.matrix(&pts);
-        let coarse_smoothing = smoothing * n as f64 / m as f64;
+        let exponent: f64 = std::env::var("CWE").ok().and_then(|v| v.parse().ok()).unwrap_or(1.0);
+        let coarse_smoothing = smoothing * (n as f64 / m as f64).powf(exponent);
         let size = m + r;
         let a = Mat::<f64>::from_fn(size, size, |i, j| {
             if i < m && j < m {
@@ -73,10 +74,15 @@ impl CoarseLevel {
             &pts,
             TreecodeParams {
                 leaf_size: COARSE_LEAF,
-                ..TreecodeParams::for_accuracy(COARSE_PRODUCT_ACCURACY)
+                theta: std::env::var("CTHETA").ok().and_then(|v| v.parse().ok()).unwrap_or(0.5),
+                nodes_per_side: std::env::var("CP").ok().and_then(|v| v.parse().ok()).unwrap_or(6),
             },
         );
         let lists = treecode.interactions(tree);
+        let (near, far) = lists.work(&treecode, tree);
+        if std::env::var_os("RBF_TRACE").is_some() {
+            eprintln!("[coarse] per target {:.0}+{:.0}", near as f64 / n as f64, far as f64 / n as f64);
+        }
         let level = CoarseLevel {
             index,
             lu,
