@@ -1,37 +1,100 @@
 //! Fast solve of `(A - wI) l + U d = f, U^T l = 0`: right-preconditioned restarted GMRES on the projected
 //! system `P (A - wI) P l = P f` (P = I - U U^T, U the orthonormal trend basis), with the treecode product
-//! and a restricted additive Schwarz preconditioner (Beatson, Light & Billings 2000): every tree leaf is a
-//! subdomain, extended by its nearest neighbours; a dense local RBF solve (with its own reduced trend) is
-//! factored once and only the rows of the leaf's own points are kept (as f32, to save memory).
+//! and a two-level Schwarz preconditioner (Beatson, Light & Billings 2000):
+//! - local level, restricted additive Schwarz: every tree leaf is a subdomain, extended by its nearest
+//!   neighbours; a dense local RBF solve (with its own reduced trend) is factored once and only the rows of
+//!   the leaf's own points are kept (as f32, to save memory);
+//! - coarse level ([`super::coarse`]): a dense solve on ~2,000 well-spread samples, applied before the
+//!   local corrections, so the iteration count no longer grows like N.
+//!
 //! The iteration stops when the system residual `max_i |f_i - s(x_i) + w l_i|` (grey levels; equal to the
-//! data misfit at w = 0) is below the fitting accuracy, measured with the fast product itself.
+//! data misfit at w = 0) is below the fitting accuracy, measured with the accurate treecode product (the
+//! model's evaluation accuracy). The Arnoldi products use a cheaper treecode (see [`inner_params`]).
+//!
+//! Measured (ultrasound-like samples, w = 1, accuracy 2, 2 loaded cores): 100k samples took 633 s with
+//! the one-level preconditioner (one accurate product of 6-7 s per iteration, iterations growing with
+//! N); with the coarse level, the cheap inner product, more overlap and peeking instead of restarting:
+//! 17 iterations, ~60 s (see the closing note of the branch for the breakdown).
+
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::time::Instant;
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use super::coarse::CoarseLevel;
 use super::direct::lu_solve;
-use super::tree::{InteractionLists, Treecode, TreecodeParams, split_by_sizes};
+use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams, split_by_sizes};
 use super::trend::TrendBasis;
 use crate::progress::Progress;
 use crate::{Error, Result};
 
-/// Extra neighbours added to each leaf to form its overlapping subdomain.
-const OVERLAP_POINTS: usize = 96;
+/// Extra neighbours added to each leaf to form its overlapping subdomain. Measured at 10k samples with
+/// the coarse level: 48 -> 19 iterations, 96 -> 12, 160 -> 6 (100k: 96 -> 28, 160 -> 22 before peeking);
+/// setup cost grows like the cube of the subdomain size (3.5 s of a 60 s fit at 100k).
+const OVERLAP_POINTS: usize = 160;
 const RESTART: usize = 40;
+/// Coarse level size: at most this many points and at most N / [`COARSE_RATIO`] (at 10k samples:
+/// 1,024; from ~33k samples on: 2,048). Its dense factor costs `8 |C|^2` bytes (34 MB at 2,048) and `|C|^3` time (0.2 s at 2,048).
+/// Measured at 10k samples: |C| = 256 -> 15 iterations, 1,024 -> 11, 2,048 -> 7 (overlap 96).
+pub(crate) const COARSE_MAX_POINTS: usize = 2048;
+const COARSE_RATIO: usize = 8;
+
+/// Where the global fast solver spent its time (wall-clock seconds) and how often.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct FastBreakdown {
+    /// Treecodes, interaction lists and the preconditioner (local and coarse factorisations).
+    pub setup_seconds: f64,
+    pub coarse_points: usize,
+    /// Products with the accurate treecode (one per true-residual check).
+    pub accurate_products: usize,
+    pub accurate_product_seconds: f64,
+    /// Products with the cheap inner treecode (one per GMRES iteration).
+    pub inner_products: usize,
+    pub inner_product_seconds: f64,
+    pub preconditioner_applications: usize,
+    pub preconditioner_seconds: f64,
+}
+
+/// Call count and accumulated time of one operation.
+#[derive(Default)]
+struct Counter {
+    nanos: AtomicU64,
+    calls: AtomicU64,
+}
+
+impl Counter {
+    fn time<T>(&self, f: impl FnOnce() -> T) -> T {
+        let start = Instant::now();
+        let out = f();
+        self.nanos
+            .fetch_add(start.elapsed().as_nanos() as u64, Relaxed);
+        self.calls.fetch_add(1, Relaxed);
+        out
+    }
+    fn seconds(&self) -> f64 {
+        self.nanos.load(Relaxed) as f64 * 1e-9
+    }
+    fn calls(&self) -> usize {
+        self.calls.load(Relaxed) as usize
+    }
+}
 
 /// The assembled fast system, in tree order.
 pub(crate) struct FastSystem {
     pub treecode: Treecode,
     lists: InteractionLists,
-    /// Cheaper, less accurate product used inside a GMRES cycle (same tree order); the residual that
-    /// decides convergence always uses the accurate one, so each restart is a step of iterative refinement.
+    /// Cheaper, less accurate product for the Arnoldi steps (same tree, so the same point order).
     inner: Option<(Treecode, InteractionLists)>,
     smoothing: f64,
     /// Trend basis values, row-major `n x rank`, tree order.
     u: Vec<f64>,
     rank: usize,
     precond: Schwarz,
+    setup_seconds: f64,
+    accurate: Counter,
+    inner_counter: Counter,
+    precond_counter: Counter,
 }
 
 impl std::fmt::Debug for FastSystem {
@@ -57,6 +120,22 @@ pub(crate) struct Solution {
     pub iterations: usize,
     pub max_residual: f64,
     pub rms_residual: f64,
+    pub breakdown: FastBreakdown,
+}
+
+/// Parameters of the inner (Arnoldi) product: separation 0.7 and at most 6 Chebyshev nodes per side.
+/// Measured on 10k ultrasound-like samples (relative to the exact product of realistic coefficients):
+/// theta 0.5 / 8 nodes (the default accuracy 1e-4) errs by 0.007 grey levels at 32k kernel terms per
+/// target at 100k samples; theta 0.7 / 6 nodes errs by ~1.5 grey levels at 10k terms. The inner error
+/// only slows convergence slightly (10k: 7 -> 10 iterations), because every convergence decision uses the
+/// accurate product. None when the accurate product is already at least as cheap.
+pub(crate) fn inner_params(outer: TreecodeParams) -> Option<TreecodeParams> {
+    let inner = TreecodeParams {
+        theta: outer.theta.max(0.7),
+        nodes_per_side: outer.nodes_per_side.min(6),
+        ..outer
+    };
+    (inner != outer).then_some(inner)
 }
 
 impl FastSystem {
@@ -66,35 +145,32 @@ impl FastSystem {
         basis: &TrendBasis,
         params: TreecodeParams,
     ) -> Result<FastSystem> {
+        Self::with_levels(points, smoothing, basis, params, true)
+    }
+
+    /// As [`FastSystem::new`]; `coarse = false` drops the coarse level (one-level Schwarz, for tests).
+    pub fn with_levels(
+        points: &[DVec3],
+        smoothing: f64,
+        basis: &TrendBasis,
+        params: TreecodeParams,
+        coarse: bool,
+    ) -> Result<FastSystem> {
+        let start = Instant::now();
         let treecode = Treecode::new(points, params);
         let lists = treecode.interactions(&treecode.tree);
-        let (near, far) = lists.work(&treecode, &treecode.tree);
-        trace(&format!(
-            "n {} params {:?}: near {near} far {far} per target {:.0}+{:.0}",
-            points.len(),
-            params,
-            near as f64 / points.len() as f64,
-            far as f64 / points.len() as f64
-        ));
+        let inner = inner_params(params).map(|p| {
+            let tc = Treecode::new(points, p);
+            // Same points and leaf size: the same median splits, so the same order.
+            debug_assert_eq!(tc.tree.order, treecode.tree.order);
+            let lists = tc.interactions(&tc.tree);
+            (tc, lists)
+        });
         let tree_points: Vec<DVec3> = (0..treecode.tree.len())
             .map(|i| treecode.tree.point(i))
             .collect();
         let u = basis.matrix(&tree_points);
-        let inner = inner_params(params).map(|p| {
-            let tc = Treecode::new(points, p);
-            debug_assert_eq!(tc.tree.order, treecode.tree.order);
-            let lists = tc.interactions(&tc.tree);
-            let (near, far) = lists.work(&tc, &tc.tree);
-            trace(&format!(
-                "inner {p:?}: per target {:.0}+{:.0}",
-                near as f64 / points.len() as f64,
-                far as f64 / points.len() as f64
-            ));
-            (tc, lists)
-        });
-        let t0 = std::time::Instant::now();
-        let precond = Schwarz::new(&treecode, smoothing)?;
-        trace(&format!("schwarz setup {:.3}s", t0.elapsed().as_secs_f64()));
+        let precond = Schwarz::new(&treecode, smoothing, coarse)?;
         Ok(FastSystem {
             treecode,
             lists,
@@ -103,34 +179,50 @@ impl FastSystem {
             u,
             rank: basis.rank(),
             precond,
+            setup_seconds: start.elapsed().as_secs_f64(),
+            accurate: Counter::default(),
+            inner_counter: Counter::default(),
+            precond_counter: Counter::default(),
         })
+    }
+
+    fn breakdown(&self) -> FastBreakdown {
+        FastBreakdown {
+            setup_seconds: self.setup_seconds,
+            coarse_points: self.precond.coarse.as_ref().map_or(0, |c| c.len()),
+            accurate_products: self.accurate.calls(),
+            accurate_product_seconds: self.accurate.seconds(),
+            inner_products: self.inner_counter.calls(),
+            inner_product_seconds: self.inner_counter.seconds(),
+            preconditioner_applications: self.precond_counter.calls(),
+            preconditioner_seconds: self.precond_counter.seconds(),
+        }
+    }
+
+    /// The preconditioner `M^-1 r`, projected onto the trend's complement.
+    fn precondition(&self, r: &[f64], z: &mut [f64]) {
+        self.precond_counter
+            .time(|| self.precond.apply(&self.treecode.tree, r, z));
+        self.project(z);
     }
 
     fn len(&self) -> usize {
         self.treecode.tree.len()
     }
 
-    /// `(A - wI) l` for tree-ordered `l`.
+    /// `(A - wI) l` for tree-ordered `l`, accurate product.
     fn apply(&self, l: &[f64], out: &mut [f64]) {
-        let _t = Timer::new(&APPLY_NS);
-        let proxies = self.treecode.upward(l);
-        self.treecode
-            .evaluate(&self.treecode.tree, &self.lists, l, &proxies, out, None);
-        for (o, &li) in out.iter_mut().zip(l) {
-            *o -= self.smoothing * li;
-        }
+        self.accurate
+            .time(|| product(&self.treecode, &self.lists, self.smoothing, l, out));
     }
 
-    /// The inner (cheap) product `(A - wI) l`, or the accurate one without an inner treecode.
+    /// `(A - wI) l` with the inner (cheap) product, or the accurate one without an inner treecode.
     fn apply_inner(&self, l: &[f64], out: &mut [f64]) {
-        let Some((tc, lists)) = &self.inner else {
-            return self.apply(l, out);
-        };
-        let _t = Timer::new(&INNER_NS);
-        let proxies = tc.upward(l);
-        tc.evaluate(&tc.tree, lists, l, &proxies, out, None);
-        for (o, &li) in out.iter_mut().zip(l) {
-            *o -= self.smoothing * li;
+        match &self.inner {
+            Some((tc, lists)) => self
+                .inner_counter
+                .time(|| product(tc, lists, self.smoothing, l, out)),
+            None => self.apply(l, out),
         }
     }
 
@@ -222,8 +314,7 @@ impl FastSystem {
             let mut g = vec![beta];
             let mut k = 0;
             loop {
-                self.precond.apply(&self.treecode.tree, &basis[k], &mut z);
-                self.project(&mut z);
+                self.precondition(&basis[k], &mut z);
                 self.apply_inner(&z, &mut w);
                 self.project(&mut w);
                 let mut col = vec![0.0; k + 2];
@@ -268,8 +359,7 @@ impl FastSystem {
                     for (j, vj) in basis.iter().take(k).enumerate() {
                         axpy(y[j], vj, &mut combo);
                     }
-                    self.precond.apply(&self.treecode.tree, &combo, &mut z);
-                    self.project(&mut z);
+                    self.precondition(&combo, &mut z);
                     let mut x_try = x.clone();
                     axpy(1.0, &z, &mut x_try);
                     let e_try = residual(&x_try, &mut work);
@@ -305,21 +395,13 @@ impl FastSystem {
         let rest: Vec<f64> = f.iter().zip(&work).map(|(a, b)| a - b).collect();
         let trend = self.trend_coefficients(&rest);
         let rms_residual = norm(&e) / sqrt_n;
-        trace(&format!(
-            "iterations {iterations}, matvec {:.3}s total ({} calls), inner {:.3}s ({} calls), precond {:.3}s ({} calls)",
-            APPLY_NS.0.load(Relaxed) as f64 * 1e-9,
-            APPLY_NS.1.load(Relaxed),
-            INNER_NS.0.load(Relaxed) as f64 * 1e-9,
-            INNER_NS.1.load(Relaxed),
-            PRECOND_NS.0.load(Relaxed) as f64 * 1e-9,
-            PRECOND_NS.1.load(Relaxed)
-        ));
         Ok(Solution {
             coefficients: self.treecode.tree.to_input_order(&x),
             trend,
             iterations,
             max_residual: max_abs,
             rms_residual,
+            breakdown: self.breakdown(),
         })
     }
 
@@ -334,11 +416,15 @@ impl FastSystem {
                 .map(|(d, b)| d.len() * 4 + b.len() * 4)
                 .sum::<usize>()
             + self.precond.coarse.as_ref().map_or(0, |c| c.memory_bytes())
+            + self
+                .inner
+                .as_ref()
+                .map_or(0, |(tc, lists)| tc.memory_bytes() + lists.memory_bytes())
     }
 }
 
 impl Schwarz {
-    fn new(tc: &Treecode, smoothing: f64) -> Result<Schwarz> {
+    fn new(tc: &Treecode, smoothing: f64, with_coarse: bool) -> Result<Schwarz> {
         let tree = &tc.tree;
         let n = tree.len();
         let leaves = &tree.leaves;
@@ -351,7 +437,7 @@ impl Schwarz {
                     .iter()
                     .fold(DVec3::ZERO, |a, &i| a + tree.point(i as usize))
                     / inner.len().max(1) as f64;
-                let want = (inner.len() + overlap_points()).min(n);
+                let want = (inner.len() + OVERLAP_POINTS).min(n);
                 let mut domain = inner.clone();
                 for j in tree.nearest(centroid, want) {
                     if domain.len() >= want {
@@ -376,17 +462,11 @@ impl Schwarz {
             .iter()
             .map(|&l| tree.nodes[l as usize].len())
             .collect();
-        let target: usize = std::env::var("COARSE")
-            .ok()
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(1000);
-        let t0 = std::time::Instant::now();
-        let coarse = CoarseLevel::new(tree, target, smoothing)?;
-        trace(&format!(
-            "coarse {} points setup {:.3}s",
-            coarse.as_ref().map_or(0, |c| c.len()),
-            t0.elapsed().as_secs_f64()
-        ));
+        let coarse = if with_coarse {
+            CoarseLevel::new(tree, coarse_points(n), smoothing)?
+        } else {
+            None
+        };
         Ok(Schwarz {
             domains: out,
             leaf_sizes,
@@ -395,8 +475,7 @@ impl Schwarz {
     }
 
     /// Two-level application: coarse solve, residual update, then the local corrections.
-    fn apply(&self, tree: &super::tree::Tree, r: &[f64], z: &mut [f64]) {
-        let _t = Timer::new(&PRECOND_NS);
+    fn apply(&self, tree: &Tree, r: &[f64], z: &mut [f64]) {
         match &self.coarse {
             None => self.apply_local(r, z),
             Some(coarse) => {
@@ -520,89 +599,16 @@ fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
         });
 }
 
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-static APPLY_NS: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
-static INNER_NS: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
-static PRECOND_NS: (AtomicU64, AtomicU64) = (AtomicU64::new(0), AtomicU64::new(0));
-struct Timer(&'static (AtomicU64, AtomicU64), std::time::Instant);
-impl Timer {
-    fn new(c: &'static (AtomicU64, AtomicU64)) -> Timer {
-        Timer(c, std::time::Instant::now())
-    }
-}
-impl Drop for Timer {
-    fn drop(&mut self) {
-        self.0.0.fetch_add(self.1.elapsed().as_nanos() as u64, Relaxed);
-        self.0.1.fetch_add(1, Relaxed);
-    }
-}
-fn inner_params(outer: TreecodeParams) -> Option<TreecodeParams> {
-    let theta: f64 = std::env::var("ITHETA").ok()?.parse().ok()?;
-    let p: usize = std::env::var("IP").ok()?.parse().ok()?;
-    Some(TreecodeParams {
-        theta,
-        nodes_per_side: p,
-        ..outer
-    })
-}
-fn overlap_points() -> usize {
-    std::env::var("OVL").ok().and_then(|v| v.parse().ok()).unwrap_or(OVERLAP_POINTS)
-}
-fn trace(msg: &str) {
-    if std::env::var_os("RBF_TRACE").is_some() {
-        eprintln!("[fast] {msg}");
-    }
+/// Coarse level size for `n` samples.
+fn coarse_points(n: usize) -> usize {
+    (n / COARSE_RATIO).min(COARSE_MAX_POINTS)
 }
 
-#[cfg(test)]
-mod experiment {
-    use super::*;
-    use crate::rbf::ultrasound_like_samples;
-
-    #[test]
-    #[ignore]
-    fn treecode_error_vs_params() {
-        let n: usize = std::env::var("N").ok().and_then(|v| v.parse().ok()).unwrap_or(10000);
-        let (pts, vals) = ultrasound_like_samples(n, 1);
-        let basis = TrendBasis::new(&pts);
-        let sys = FastSystem::new(&pts, 1.0, &basis, TreecodeParams::for_accuracy(1e-4)).unwrap();
-        let f = sys.treecode.tree.to_tree_order(&vals);
-        let mut z = vec![0.0; n];
-        sys.precond.apply(&sys.treecode.tree, &f, &mut z);
-        sys.project(&mut z);
-        let l = sys.treecode.tree.to_input_order(&z);
-        eprintln!("sum |l| {:.3e} max |l| {:.3e}", l.iter().map(|v| v.abs()).sum::<f64>(), l.iter().fold(0.0f64, |a, v| a.max(v.abs())));
-        let probes: Vec<usize> = (0..n).step_by((n / 2000).max(1)).collect();
-        let exact: Vec<f64> = probes
-            .par_iter()
-            .map(|&i| pts.iter().zip(&l).map(|(y, q)| q * (pts[i] - *y).length()).sum())
-            .collect();
-        let thetas: Vec<f64> = std::env::var("THETAS").ok().map(|v| v.split(',').map(|t| t.parse().unwrap()).collect()).unwrap_or(vec![0.5, 0.7]);
-        let ps: Vec<usize> = std::env::var("PS").ok().map(|v| v.split(',').map(|t| t.parse().unwrap()).collect()).unwrap_or(vec![4, 6, 8]);
-        let leaves: Vec<usize> = std::env::var("LEAVES").ok().map(|v| v.split(',').map(|t| t.parse().unwrap()).collect()).unwrap_or(vec![32, 64]);
-        for &theta in &thetas {
-            for &p in &ps {
-                for &leaf in &leaves {
-                    let params = TreecodeParams { theta, nodes_per_side: p, leaf_size: leaf };
-                    let tc = Treecode::new(&pts, params);
-                    let lists = tc.interactions(&tc.tree);
-                    let (near, far) = lists.work(&tc, &tc.tree);
-                    let q = tc.tree.to_tree_order(&l);
-                    let t = std::time::Instant::now();
-                    let prox = tc.upward(&q);
-                    let tu = t.elapsed().as_secs_f64();
-                    let mut out = vec![0.0; n];
-                    tc.evaluate(&tc.tree, &lists, &q, &prox, &mut out, None);
-                    let secs = t.elapsed().as_secs_f64();
-                    let out = tc.tree.to_input_order(&out);
-                    let err = probes.iter().zip(&exact).fold(0.0f64, |a, (&i, y)| a.max((out[i] - y).abs()));
-                    eprintln!(
-                        "theta {theta} p {p} leaf {leaf}: {secs:.3}s (upward {tu:.3}) near/t {:.0} far/t {:.0} max err {err:.2e}",
-                        near as f64 / n as f64,
-                        far as f64 / n as f64
-                    );
-                }
-            }
-        }
+/// `out = (A - wI) l` with treecode `tc`.
+fn product(tc: &Treecode, lists: &InteractionLists, smoothing: f64, l: &[f64], out: &mut [f64]) {
+    let proxies = tc.upward(l);
+    tc.evaluate(&tc.tree, lists, l, &proxies, out, None);
+    for (o, &li) in out.iter_mut().zip(l) {
+        *o -= smoothing * li;
     }
 }

@@ -546,24 +546,6 @@ impl Treecode {
 }
 
 impl InteractionLists {
-    /// (near, far) kernel evaluations of one product with these lists (diagnostics).
-    pub fn work(&self, tc: &Treecode, targets: &dyn Targets) -> (usize, usize) {
-        let leaves = targets.leaf_ranges();
-        let (mut near, mut far) = (0, 0);
-        for (li, l) in leaves.iter().enumerate() {
-            let nt = l.1 - l.0;
-            for &e in &self.entries[self.offsets[li] as usize..self.offsets[li + 1] as usize] {
-                let ni = (e & !FAR_BIT) as usize;
-                if e & FAR_BIT != 0 {
-                    far += nt * tc.grids[ni].expect("grid").size();
-                } else {
-                    near += nt * tc.tree.nodes[ni].len();
-                }
-            }
-        }
-        (near, far)
-    }
-
     pub fn memory_bytes(&self) -> usize {
         (self.offsets.len() + self.entries.len()) * 4
     }
