@@ -4,17 +4,18 @@
 //! - local level, restricted additive Schwarz: every tree leaf is a subdomain, extended by its nearest
 //!   neighbours; a dense local RBF solve (with its own reduced trend) is factored once and only the rows of
 //!   the leaf's own points are kept (as f32, to save memory);
-//! - coarse level ([`super::coarse`]): a dense solve on ~2,000 well-spread samples, applied before the
-//!   local corrections, so the iteration count no longer grows like N.
+//! - coarse level ([`super::coarse`]): a dense solve on up to 2,048 well-spread samples, applied before
+//!   the local corrections, so the iteration count grows slowly with N (8 at 10k, 17 at 100k samples).
 //!
 //! The iteration stops when the system residual `max_i |f_i - s(x_i) + w l_i|` (grey levels; equal to the
 //! data misfit at w = 0) is below the fitting accuracy, measured with the accurate treecode product (the
 //! model's evaluation accuracy). The Arnoldi products use a cheaper treecode (see [`inner_params`]).
 //!
-//! Measured (ultrasound-like samples, w = 1, accuracy 2, 2 loaded cores): 100k samples took 633 s with
-//! the one-level preconditioner (one accurate product of 6-7 s per iteration, iterations growing with
-//! N); with the coarse level, the cheap inner product, more overlap and peeking instead of restarting:
-//! 17 iterations, ~60 s (see the closing note of the branch for the breakdown).
+//! Measured (ultrasound-like samples, w = 1, accuracy 2, eval accuracy 1e-4; 2 shared cores giving about
+//! one core's throughput): one-level Schwarz needed 28 iterations / 2.4 s at 10k and 633 s at 100k (issue
+//! #5), one accurate product per iteration (32k kernel terms per sample at 100k). Now: 8 iterations /
+//! 0.7 s at 10k, 17 iterations / 30-40 s at 100k, where the products are ~85 % of the time (the treecode's
+//! kernel throughput is the limit; see `FastBreakdown`).
 
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Instant;
@@ -121,6 +122,8 @@ pub(crate) struct Solution {
     pub max_residual: f64,
     pub rms_residual: f64,
     pub breakdown: FastBreakdown,
+    /// Most Krylov basis vectors held at once (each `8 N` bytes).
+    pub krylov_vectors: usize,
 }
 
 /// Parameters of the inner (Arnoldi) product: separation 0.7 and at most 6 Chebyshev nodes per side.
@@ -295,6 +298,7 @@ impl FastSystem {
         };
         let mut e = residual(&x, &mut work);
         let mut iterations = 0;
+        let mut krylov_vectors = 0;
         let mut max_abs = max_norm(&e);
         // Peek at the true residual once the GMRES estimate (rms) falls below this.
         // The max norm runs ~3-6x the rms on speckled data: a first target of accuracy / 5 saves a
@@ -392,6 +396,7 @@ impl FastSystem {
                     // recomputed by the next peek.
                 }
                 basis.push(w.iter().map(|v| v / hn).collect());
+                krylov_vectors = krylov_vectors.max(basis.len());
             }
         }
         progress.finish();
@@ -406,6 +411,7 @@ impl FastSystem {
             max_residual: max_abs,
             rms_residual,
             breakdown: self.breakdown(),
+            krylov_vectors: krylov_vectors.max(1),
         })
     }
 

@@ -318,7 +318,8 @@ fn solve_subset(
                 initial,
                 progress,
             )?;
-            let bytes = system.memory_bytes() + (40 + 6) * n * 8;
+            // Krylov basis plus the work vectors alive at a peek (x, f, work, e, z, w, combo, x_try, e_try).
+            let bytes = system.memory_bytes() + (sol.krylov_vectors + 9) * n * 8;
             fast_breakdown = Some(sol.breakdown);
             (
                 sol.coefficients,
