@@ -228,7 +228,11 @@ mod tests {
             .map(|_| rng.random_range(-20.0..20.0))
             .collect();
         let got = level.solve(&r);
-        let sub: Vec<DVec3> = level.index.iter().map(|&i| tree.point(i as usize)).collect();
+        let sub: Vec<DVec3> = level
+            .index
+            .iter()
+            .map(|&i| tree.point(i as usize))
+            .collect();
         let rhs: Vec<f64> = level.index.iter().map(|&i| r[i as usize]).collect();
         let (want, _) = solve_dense(&sub, &rhs, w, &TrendBasis::new(&sub)).unwrap();
         let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -250,7 +254,11 @@ mod tests {
             .collect();
         let mut got = vec![0.0; tree.len()];
         level.product(&tree, &l, &mut got);
-        let coarse: Vec<DVec3> = level.index.iter().map(|&i| tree.point(i as usize)).collect();
+        let coarse: Vec<DVec3> = level
+            .index
+            .iter()
+            .map(|&i| tree.point(i as usize))
+            .collect();
         for i in (0..tree.len()).step_by(7) {
             let x = tree.point(i);
             let mut exact = 0.0;
