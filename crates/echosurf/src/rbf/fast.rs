@@ -38,7 +38,7 @@ const RESTART: usize = 40;
 /// Coarse level size: at most this many points and at most N / [`COARSE_RATIO`] (at 10k samples:
 /// 1,024; from ~33k samples on: 2,048). Its dense factor costs `8 |C|^2` bytes (34 MB at 2,048) and `|C|^3` time (0.2 s at 2,048).
 /// Measured at 10k samples: |C| = 256 -> 15 iterations, 1,024 -> 11, 2,048 -> 7 (overlap 96).
-pub(crate) const COARSE_MAX_POINTS: usize = 2048;
+const COARSE_MAX_POINTS: usize = 2048;
 const COARSE_RATIO: usize = 8;
 
 /// Where the global fast solver spent its time (wall-clock seconds) and how often.
