@@ -61,6 +61,8 @@ pub struct ScalingRow {
     /// Time to evaluate values and gradients at `samples` fresh points.
     pub eval_seconds: f64,
     pub solver_bytes_per_sample: f64,
+    /// Time breakdown of the global fast solver (None for the other solvers).
+    pub fast_breakdown: Option<super::FastBreakdown>,
 }
 
 /// Fits [`ultrasound_like_samples`] of each size with `options` and times fit and evaluation.
@@ -89,6 +91,7 @@ pub fn bench_fit_scaling(
             mean_patch_points: report.mean_patch_points,
             eval_seconds,
             solver_bytes_per_sample: report.solver_bytes as f64 / n as f64,
+            fast_breakdown: report.fast_breakdown,
         });
     }
     Ok(rows)

@@ -1,33 +1,101 @@
 //! Fast solve of `(A - wI) l + U d = f, U^T l = 0`: right-preconditioned restarted GMRES on the projected
 //! system `P (A - wI) P l = P f` (P = I - U U^T, U the orthonormal trend basis), with the treecode product
-//! and a restricted additive Schwarz preconditioner (Beatson, Light & Billings 2000): every tree leaf is a
-//! subdomain, extended by its nearest neighbours; a dense local RBF solve (with its own reduced trend) is
-//! factored once and only the rows of the leaf's own points are kept (as f32, to save memory).
+//! and a two-level Schwarz preconditioner (Beatson, Light & Billings 2000):
+//! - local level, restricted additive Schwarz: every tree leaf is a subdomain, extended by its nearest
+//!   neighbours; a dense local RBF solve (with its own reduced trend) is factored once and only the rows of
+//!   the leaf's own points are kept (as f32, to save memory);
+//! - coarse level ([`super::coarse`]): a dense solve on up to 2,048 well-spread samples, applied before
+//!   the local corrections, so the iteration count grows slowly with N (8 at 10k, 17 at 100k samples).
+//!
 //! The iteration stops when the system residual `max_i |f_i - s(x_i) + w l_i|` (grey levels; equal to the
-//! data misfit at w = 0) is below the fitting accuracy, measured with the fast product itself.
+//! data misfit at w = 0) is below the fitting accuracy, measured with the accurate treecode product (the
+//! model's evaluation accuracy). The Arnoldi products use a cheaper treecode (see [`inner_params`]).
+//!
+//! Measured (ultrasound-like samples, w = 1, accuracy 2, eval accuracy 1e-4; 2 shared cores giving about
+//! one core's throughput): one-level Schwarz needed 28 iterations / 2.4 s at 10k and 633 s at 100k (issue
+//! #5), one accurate product per iteration (32k kernel terms per sample at 100k). Now: 8 iterations /
+//! 0.7 s at 10k, 17 iterations / 30-40 s at 100k, where the products are ~85 % of the time (the treecode's
+//! kernel throughput is the limit; see `FastBreakdown`).
+
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::time::Instant;
 
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::coarse::CoarseLevel;
 use super::direct::lu_solve;
-use super::tree::{InteractionLists, Treecode, TreecodeParams, split_by_sizes};
+use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams, split_by_sizes};
 use super::trend::TrendBasis;
 use crate::progress::Progress;
 use crate::{Error, Result};
 
-/// Extra neighbours added to each leaf to form its overlapping subdomain.
-const OVERLAP_POINTS: usize = 96;
+/// Extra neighbours added to each leaf to form its overlapping subdomain. Measured at 10k samples with
+/// the coarse level: 48 -> 19 iterations, 96 -> 12, 160 -> 6 (100k: 96 -> 28, 160 -> 22 before peeking);
+/// setup cost grows like the cube of the subdomain size (3.5 s of a 60 s fit at 100k).
+const OVERLAP_POINTS: usize = 160;
 const RESTART: usize = 40;
+/// Coarse level size: at most this many points and at most N / [`COARSE_RATIO`] (at 10k samples:
+/// 1,024; from ~33k samples on: 2,048). Its dense factor costs `8 |C|^2` bytes (34 MB at 2,048) and `|C|^3` time (0.2 s at 2,048).
+/// Measured at 10k samples: |C| = 256 -> 15 iterations, 1,024 -> 11, 2,048 -> 7 (overlap 96).
+const COARSE_MAX_POINTS: usize = 2048;
+const COARSE_RATIO: usize = 8;
+
+/// Where the global fast solver spent its time (wall-clock seconds) and how often.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct FastBreakdown {
+    /// Treecodes, interaction lists and the preconditioner (local and coarse factorisations).
+    pub setup_seconds: f64,
+    pub coarse_points: usize,
+    /// Products with the accurate treecode (one per true-residual check).
+    pub accurate_products: usize,
+    pub accurate_product_seconds: f64,
+    /// Products with the cheap inner treecode (one per GMRES iteration).
+    pub inner_products: usize,
+    pub inner_product_seconds: f64,
+    pub preconditioner_applications: usize,
+    pub preconditioner_seconds: f64,
+}
+
+/// Call count and accumulated time of one operation.
+#[derive(Default)]
+struct Counter {
+    nanos: AtomicU64,
+    calls: AtomicU64,
+}
+
+impl Counter {
+    fn time<T>(&self, f: impl FnOnce() -> T) -> T {
+        let start = Instant::now();
+        let out = f();
+        self.nanos
+            .fetch_add(start.elapsed().as_nanos() as u64, Relaxed);
+        self.calls.fetch_add(1, Relaxed);
+        out
+    }
+    fn seconds(&self) -> f64 {
+        self.nanos.load(Relaxed) as f64 * 1e-9
+    }
+    fn calls(&self) -> usize {
+        self.calls.load(Relaxed) as usize
+    }
+}
 
 /// The assembled fast system, in tree order.
 pub(crate) struct FastSystem {
     pub treecode: Treecode,
     lists: InteractionLists,
+    /// Cheaper, less accurate product for the Arnoldi steps (same tree, so the same point order).
+    inner: Option<(Treecode, InteractionLists)>,
     smoothing: f64,
     /// Trend basis values, row-major `n x rank`, tree order.
     u: Vec<f64>,
     rank: usize,
     precond: Schwarz,
+    setup_seconds: f64,
+    accurate: Counter,
+    inner_counter: Counter,
+    precond_counter: Counter,
 }
 
 impl std::fmt::Debug for FastSystem {
@@ -40,6 +108,7 @@ struct Schwarz {
     /// Per leaf: domain points (tree positions) and the `inner x domain` rows of the local inverse.
     domains: Vec<(Vec<u32>, Vec<f32>)>,
     leaf_sizes: Vec<usize>,
+    coarse: Option<CoarseLevel>,
 }
 
 /// Outcome of an iterative solve.
@@ -52,6 +121,26 @@ pub(crate) struct Solution {
     pub iterations: usize,
     pub max_residual: f64,
     pub rms_residual: f64,
+    pub breakdown: FastBreakdown,
+    /// Most Krylov basis vectors held at once (each `8 N` bytes).
+    pub krylov_vectors: usize,
+}
+
+/// Parameters of the inner (Arnoldi) product: separation 0.7 and at most 6 Chebyshev nodes per side.
+/// Measured on 10k ultrasound-like samples (relative to the exact product of realistic coefficients):
+/// theta 0.5 / 8 nodes (the default accuracy 1e-4) errs by 0.007 grey levels at 32k kernel terms per
+/// target at 100k samples; theta 0.7 / 6 nodes errs by ~1.5 grey levels at 10k terms. The inner error
+/// only slows convergence slightly (10k: 7 -> 10 iterations), because every convergence decision uses the
+/// accurate product. Cheaper choices cost more than they save at 100k samples: theta 0.85 / 6 nodes 28
+/// iterations, 0.7 / 5 27, 0.6 / 5 17 at the same time (0.7 / 6: 17). None when the accurate product is
+/// already at least as cheap.
+pub(crate) fn inner_params(outer: TreecodeParams) -> Option<TreecodeParams> {
+    let inner = TreecodeParams {
+        theta: outer.theta.max(0.7),
+        nodes_per_side: outer.nodes_per_side.min(6),
+        ..outer
+    };
+    (inner != outer).then_some(inner)
 }
 
 impl FastSystem {
@@ -61,34 +150,84 @@ impl FastSystem {
         basis: &TrendBasis,
         params: TreecodeParams,
     ) -> Result<FastSystem> {
+        Self::with_levels(points, smoothing, basis, params, true)
+    }
+
+    /// As [`FastSystem::new`]; `coarse = false` drops the coarse level (one-level Schwarz, for tests).
+    pub fn with_levels(
+        points: &[DVec3],
+        smoothing: f64,
+        basis: &TrendBasis,
+        params: TreecodeParams,
+        coarse: bool,
+    ) -> Result<FastSystem> {
+        let start = Instant::now();
         let treecode = Treecode::new(points, params);
         let lists = treecode.interactions(&treecode.tree);
+        let inner = inner_params(params).map(|p| {
+            let tc = Treecode::new(points, p);
+            // Same points and leaf size: the same median splits, so the same order.
+            debug_assert_eq!(tc.tree.order, treecode.tree.order);
+            let lists = tc.interactions(&tc.tree);
+            (tc, lists)
+        });
         let tree_points: Vec<DVec3> = (0..treecode.tree.len())
             .map(|i| treecode.tree.point(i))
             .collect();
         let u = basis.matrix(&tree_points);
-        let precond = Schwarz::new(&treecode, smoothing)?;
+        let precond = Schwarz::new(&treecode, smoothing, coarse)?;
         Ok(FastSystem {
             treecode,
             lists,
+            inner,
             smoothing,
             u,
             rank: basis.rank(),
             precond,
+            setup_seconds: start.elapsed().as_secs_f64(),
+            accurate: Counter::default(),
+            inner_counter: Counter::default(),
+            precond_counter: Counter::default(),
         })
+    }
+
+    fn breakdown(&self) -> FastBreakdown {
+        FastBreakdown {
+            setup_seconds: self.setup_seconds,
+            coarse_points: self.precond.coarse.as_ref().map_or(0, |c| c.len()),
+            accurate_products: self.accurate.calls(),
+            accurate_product_seconds: self.accurate.seconds(),
+            inner_products: self.inner_counter.calls(),
+            inner_product_seconds: self.inner_counter.seconds(),
+            preconditioner_applications: self.precond_counter.calls(),
+            preconditioner_seconds: self.precond_counter.seconds(),
+        }
+    }
+
+    /// The preconditioner `M^-1 r`, projected onto the trend's complement.
+    fn precondition(&self, r: &[f64], z: &mut [f64]) {
+        self.precond_counter
+            .time(|| self.precond.apply(&self.treecode.tree, r, z));
+        self.project(z);
     }
 
     fn len(&self) -> usize {
         self.treecode.tree.len()
     }
 
-    /// `(A - wI) l` for tree-ordered `l`.
+    /// `(A - wI) l` for tree-ordered `l`, accurate product.
     fn apply(&self, l: &[f64], out: &mut [f64]) {
-        let proxies = self.treecode.upward(l);
-        self.treecode
-            .evaluate(&self.treecode.tree, &self.lists, l, &proxies, out, None);
-        for (o, &li) in out.iter_mut().zip(l) {
-            *o -= self.smoothing * li;
+        self.accurate
+            .time(|| product(&self.treecode, &self.lists, self.smoothing, l, out));
+    }
+
+    /// `(A - wI) l` with the inner (cheap) product, or the accurate one without an inner treecode.
+    fn apply_inner(&self, l: &[f64], out: &mut [f64]) {
+        match &self.inner {
+            Some((tc, lists)) => self
+                .inner_counter
+                .time(|| product(tc, lists, self.smoothing, l, out)),
+            None => self.apply(l, out),
         }
     }
 
@@ -116,6 +255,15 @@ impl FastSystem {
 
     /// Solves for input-ordered `values`, stopping when the max residual is below `accuracy`.
     /// `initial` (input order) warm-starts the iteration.
+    ///
+    /// Restarted GMRES, right-preconditioned. The Arnoldi products use the cheap inner treecode; the
+    /// residual that decides convergence uses the accurate one. When the GMRES estimate of the rms
+    /// residual reaches the current target, the iterate is formed and its true residual measured
+    /// ("peek"): converged -> done; otherwise the rms target is lowered (the max norm lags the rms) and
+    /// the same Krylov space is extended, unless the true residual has drifted from the estimate (the
+    /// inner product's error dominates), in which case the cycle restarts from the true residual (a step
+    /// of iterative refinement). Peeking instead of restarting keeps the Krylov space: measured 22 -> 13
+    /// iterations at 100k samples.
     pub fn solve(
         &self,
         values: &[f64],
@@ -125,6 +273,7 @@ impl FastSystem {
         progress: &dyn Progress,
     ) -> Result<Solution> {
         let n = self.len();
+        let sqrt_n = (n as f64).sqrt();
         let f = self.treecode.tree.to_tree_order(values);
         let mut x = match initial {
             Some(init) => {
@@ -134,21 +283,31 @@ impl FastSystem {
             }
             None => vec![0.0; n],
         };
+        // `work` holds (A - wI) x of the latest true residual (for the trend at the end).
         let mut work = vec![0.0; n];
         // True residual e = P (f - (A - wI) x): with d = U^T (f - (A - wI) x) it is the system residual.
         let residual = |x: &[f64], work: &mut Vec<f64>| -> Vec<f64> {
-            self.apply(x, work);
+            if x.iter().all(|&v| v == 0.0) {
+                work.fill(0.0); // a cold start needs no product
+            } else {
+                self.apply(x, work);
+            }
             let mut e: Vec<f64> = f.iter().zip(work.iter()).map(|(a, b)| a - b).collect();
             self.project(&mut e);
             e
         };
         let mut e = residual(&x, &mut work);
         let mut iterations = 0;
+        let mut krylov_vectors = 0;
         let mut max_abs = max_norm(&e);
-        // Switch to a true-residual check once the GMRES estimate (rms) falls below this.
-        let mut check_rms = accuracy * 0.5;
+        // Peek at the true residual once the GMRES estimate (rms) falls below this.
+        // The max norm runs ~3-6x the rms on speckled data: a first target of accuracy / 5 saves a
+        // peek (an accurate product) at 10k and 100k samples without changing the iterate.
+        let mut check_rms = accuracy * 0.2;
+        let mut z = vec![0.0; n];
+        let mut w = vec![0.0; n];
         progress.start("fit: iterations", max_iterations as u64);
-        while max_abs > accuracy {
+        'cycles: while max_abs > accuracy {
             if iterations >= max_iterations {
                 progress.finish();
                 return Err(Error::Numerical(format!(
@@ -161,13 +320,10 @@ impl FastSystem {
             let mut h: Vec<Vec<f64>> = Vec::new(); // column j has j + 2 entries
             let mut cs: Vec<(f64, f64)> = Vec::new();
             let mut g = vec![beta];
-            let mut z = vec![0.0; n];
-            let mut w = vec![0.0; n];
             let mut k = 0;
-            while k < RESTART && iterations < max_iterations {
-                self.precond.apply(&basis[k], &mut z);
-                self.project(&mut z);
-                self.apply(&z, &mut w);
+            loop {
+                self.precondition(&basis[k], &mut z);
+                self.apply_inner(&z, &mut w);
                 self.project(&mut w);
                 let mut col = vec![0.0; k + 2];
                 // Modified Gram-Schmidt, twice for stability with this many vectors.
@@ -202,55 +358,60 @@ impl FastSystem {
                 iterations += 1;
                 k += 1;
                 progress.advance(iterations as u64);
-                let estimate_rms = g[k].abs() / (n as f64).sqrt();
-                if hn == 0.0 || estimate_rms <= check_rms {
-                    break;
+                let estimate_rms = g[k].abs() / sqrt_n;
+                let cycle_over = hn == 0.0 || k >= RESTART || iterations >= max_iterations;
+                if cycle_over || estimate_rms <= check_rms {
+                    // Form the iterate x + M^-1 V y and measure its true residual.
+                    let y = back_substitute(&h, &g, k);
+                    let mut combo = vec![0.0; n];
+                    for (j, vj) in basis.iter().take(k).enumerate() {
+                        axpy(y[j], vj, &mut combo);
+                    }
+                    self.precondition(&combo, &mut z);
+                    let mut x_try = x.clone();
+                    axpy(1.0, &z, &mut x_try);
+                    let e_try = residual(&x_try, &mut work);
+                    let max_try = max_norm(&e_try);
+                    if !max_try.is_finite() {
+                        progress.finish();
+                        return Err(Error::Numerical(
+                            "RBF solve diverged (non-finite residual)".into(),
+                        ));
+                    }
+                    let rms_try = norm(&e_try) / sqrt_n;
+                    if max_try > accuracy && rms_try <= check_rms {
+                        // The max norm lags the rms: ask for a proportionally smaller rms next time.
+                        check_rms = rms_try * (accuracy / max_try).min(0.5);
+                    } else if max_try > accuracy {
+                        check_rms *= 0.5;
+                    }
+                    let drifted = rms_try > 2.0 * estimate_rms;
+                    if max_try <= accuracy || cycle_over || drifted {
+                        x = x_try;
+                        e = e_try;
+                        max_abs = max_try;
+                        continue 'cycles;
+                    }
+                    // Keep extending this Krylov space from the cycle's start `x`; `work` is
+                    // recomputed by the next peek.
                 }
                 basis.push(w.iter().map(|v| v / hn).collect());
-            }
-            // Solve the triangular system and update x += M^{-1} V y.
-            let mut y = vec![0.0; k];
-            for i in (0..k).rev() {
-                let mut s = g[i];
-                for j in i + 1..k {
-                    s -= h[j][i] * y[j];
-                }
-                y[i] = if h[i][i] != 0.0 { s / h[i][i] } else { 0.0 };
-            }
-            let mut combo = vec![0.0; n];
-            for (j, vj) in basis.iter().take(k).enumerate() {
-                axpy(y[j], vj, &mut combo);
-            }
-            self.precond.apply(&combo, &mut z);
-            self.project(&mut z);
-            axpy(1.0, &z, &mut x);
-            e = residual(&x, &mut work);
-            let new_max = max_norm(&e);
-            let rms = norm(&e) / (n as f64).sqrt();
-            if new_max > accuracy && rms <= check_rms {
-                // The max norm lags the rms: ask for a proportionally smaller rms next time.
-                check_rms = rms * (accuracy / new_max).min(0.5);
-            }
-            max_abs = new_max;
-            if !max_abs.is_finite() {
-                progress.finish();
-                return Err(Error::Numerical(
-                    "RBF solve diverged (non-finite residual)".into(),
-                ));
+                krylov_vectors = krylov_vectors.max(basis.len());
             }
         }
         progress.finish();
-        // Trend: d = U^T (f - (A - wI) x).
-        self.apply(&x, &mut work);
+        // Trend: d = U^T (f - (A - wI) x); `work` holds (A - wI) x from the last residual.
         let rest: Vec<f64> = f.iter().zip(&work).map(|(a, b)| a - b).collect();
         let trend = self.trend_coefficients(&rest);
-        let rms_residual = norm(&e) / (n as f64).sqrt();
+        let rms_residual = norm(&e) / sqrt_n;
         Ok(Solution {
             coefficients: self.treecode.tree.to_input_order(&x),
             trend,
             iterations,
             max_residual: max_abs,
             rms_residual,
+            breakdown: self.breakdown(),
+            krylov_vectors: krylov_vectors.max(1),
         })
     }
 
@@ -264,11 +425,16 @@ impl FastSystem {
                 .iter()
                 .map(|(d, b)| d.len() * 4 + b.len() * 4)
                 .sum::<usize>()
+            + self.precond.coarse.as_ref().map_or(0, |c| c.memory_bytes())
+            + self
+                .inner
+                .as_ref()
+                .map_or(0, |(tc, lists)| tc.memory_bytes() + lists.memory_bytes())
     }
 }
 
 impl Schwarz {
-    fn new(tc: &Treecode, smoothing: f64) -> Result<Schwarz> {
+    fn new(tc: &Treecode, smoothing: f64, with_coarse: bool) -> Result<Schwarz> {
         let tree = &tc.tree;
         let n = tree.len();
         let leaves = &tree.leaves;
@@ -306,13 +472,42 @@ impl Schwarz {
             .iter()
             .map(|&l| tree.nodes[l as usize].len())
             .collect();
+        let coarse = if with_coarse {
+            CoarseLevel::new(tree, coarse_points(n), smoothing)?
+        } else {
+            None
+        };
         Ok(Schwarz {
             domains: out,
             leaf_sizes,
+            coarse,
         })
     }
 
-    fn apply(&self, r: &[f64], z: &mut [f64]) {
+    /// Two-level application: coarse solve, residual update, then the local corrections.
+    fn apply(&self, tree: &Tree, r: &[f64], z: &mut [f64]) {
+        match &self.coarse {
+            None => self.apply_local(r, z),
+            Some(coarse) => {
+                let lc = coarse.solve(r);
+                let mut rest = vec![0.0; r.len()];
+                coarse.product(tree, &lc, &mut rest);
+                rest.par_chunks_mut(4096)
+                    .zip(r.par_chunks(4096))
+                    .for_each(|(a, b)| {
+                        for (ai, bi) in a.iter_mut().zip(b) {
+                            *ai = bi - *ai;
+                        }
+                    });
+                self.apply_local(&rest, z);
+                for (&i, &l) in coarse.index.iter().zip(&lc) {
+                    z[i as usize] += l;
+                }
+            }
+        }
+    }
+
+    fn apply_local(&self, r: &[f64], z: &mut [f64]) {
         let chunks = split_by_sizes(z, &self.leaf_sizes);
         chunks
             .into_par_iter()
@@ -373,6 +568,19 @@ fn local_inverse_rows(
     rows.iter().all(|v| v.is_finite()).then_some(rows)
 }
 
+/// Solves the `k x k` upper-triangular GMRES system `H y = g` (column-stored `h`).
+fn back_substitute(h: &[Vec<f64>], g: &[f64], k: usize) -> Vec<f64> {
+    let mut y = vec![0.0; k];
+    for i in (0..k).rev() {
+        let mut s = g[i];
+        for j in i + 1..k {
+            s -= h[j][i] * y[j];
+        }
+        y[i] = if h[i][i] != 0.0 { s / h[i][i] } else { 0.0 };
+    }
+    y
+}
+
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     // Fixed-order chunked sum: parallel, yet independent of the thread count.
     a.par_chunks(4096)
@@ -399,4 +607,18 @@ fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
                 *yi += alpha * xi;
             }
         });
+}
+
+/// Coarse level size for `n` samples.
+fn coarse_points(n: usize) -> usize {
+    (n / COARSE_RATIO).min(COARSE_MAX_POINTS)
+}
+
+/// `out = (A - wI) l` with treecode `tc`.
+fn product(tc: &Treecode, lists: &InteractionLists, smoothing: f64, l: &[f64], out: &mut [f64]) {
+    let proxies = tc.upward(l);
+    tc.evaluate(&tc.tree, lists, l, &proxies, out, None);
+    for (o, &li) in out.iter_mut().zip(l) {
+        *o -= smoothing * li;
+    }
 }
