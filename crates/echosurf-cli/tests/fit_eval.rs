@@ -57,6 +57,47 @@ fn fit_then_eval_round_trip() {
     );
     let report: serde_json::Value = serde_json::from_slice(&fit.stdout).unwrap();
     assert_eq!(report["centres"], 400);
+    // `--solver` picks the method; the report names the one used.
+    for (choice, name) in [
+        ("fast", "Fast"),
+        ("pu", "PartitionOfUnity"),
+        ("direct", "Direct"),
+    ] {
+        let other = Command::new(exe)
+            .args(["fit", points_path.to_str().unwrap(), "--out"])
+            .arg(dir.path().join(format!("{choice}.esrbf")))
+            .args([
+                "--smoothing",
+                "0",
+                "--accuracy",
+                "0.01",
+                "--json",
+                "--solver",
+                choice,
+            ])
+            .output()
+            .unwrap();
+        assert!(
+            other.status.success(),
+            "{choice}: {}",
+            String::from_utf8_lossy(&other.stderr)
+        );
+        let r: serde_json::Value = serde_json::from_slice(&other.stdout).unwrap();
+        assert_eq!(r["solver"], name, "{r}");
+        assert!(
+            r["max_residual"].as_f64().unwrap() <= 0.01 + 1e-9,
+            "{choice}: {r}"
+        );
+    }
+    let bogus = Command::new(exe)
+        .args(["fit", points_path.to_str().unwrap(), "--out"])
+        .arg(dir.path().join("bogus.esrbf"))
+        .args(["--solver", "magic"])
+        .output()
+        .unwrap();
+    assert!(!bogus.status.success());
+    assert!(String::from_utf8_lossy(&bogus.stderr).contains("--solver magic"));
+    assert!(!dir.path().join("bogus.esrbf").exists());
     let eval = Command::new(exe)
         .args([
             "eval",

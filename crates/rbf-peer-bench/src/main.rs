@@ -8,7 +8,7 @@
 use std::time::Instant;
 
 use echosurf::progress::NoProgress;
-use echosurf::rbf::{FitOptions, fit, ultrasound_like_samples};
+use echosurf::rbf::{FitOptions, SolverChoice, fit, ultrasound_like_samples};
 use faer::Mat;
 use ferreus_rbf::RBFInterpolator;
 use ferreus_rbf::interpolant_config::{
@@ -20,7 +20,11 @@ fn main() {
         .skip(1)
         .filter_map(|a| a.parse().ok())
         .collect();
-    let sizes = if sizes.is_empty() { vec![10_000, 90_000] } else { sizes };
+    let sizes = if sizes.is_empty() {
+        vec![10_000, 90_000]
+    } else {
+        sizes
+    };
     let accuracy: f64 = std::env::var("ACC")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -45,6 +49,12 @@ fn main() {
             smoothing: 0.0,
             accuracy,
             merge_distance_mm: 0.0,
+            // SOLVER=fast: the single global spline (the same model as ferreus); default Auto
+            // (partition of unity above 2,000 samples).
+            solver: match std::env::var("SOLVER").as_deref() {
+                Ok("fast") => SolverChoice::Fast,
+                _ => SolverChoice::Auto,
+            },
             ..FitOptions::default()
         };
         let start = Instant::now();

@@ -45,6 +45,10 @@ pub struct Args {
     /// Smoothing weight w in mm (larger = smoother; 0 interpolates the speckle).
     #[arg(long)]
     pub smoothing: Option<f64>,
+    /// RBF solver: auto (partition of unity above 2,000 samples), direct, pu, or fast (the single
+    /// global spline; slower).
+    #[arg(long, default_value = "auto")]
+    pub solver: String,
     /// Fitting accuracy: largest allowed |s(x_i) - f_i - w l_i| in grey levels.
     #[arg(long)]
     pub accuracy: Option<f64>,
@@ -199,6 +203,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             smoothing: args.smoothing.unwrap_or(pipeline::DEFAULT_SMOOTHING_MM),
             accuracy: args.accuracy.unwrap_or(defaults.accuracy),
             seed: args.seed,
+            solver: super::fit::parse_solver(&args.solver)?,
             ..defaults
         },
         surface: SurfaceOptions {

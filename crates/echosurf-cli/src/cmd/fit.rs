@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use echosurf::rbf::{FitOptions, fit};
+use echosurf::rbf::{FitOptions, SolverChoice, fit};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -27,6 +27,10 @@ pub struct Args {
     /// Seed of the centre reduction's initial subset.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Solver: `auto` (dense up to 2,000 samples, partition of unity above), `direct`, `pu`, or `fast`
+    /// (the single global spline, treecode + two-level Schwarz GMRES; slower, exact to the accuracy).
+    #[arg(long, default_value = "auto")]
+    pub solver: String,
     /// Print the fit report as JSON on stdout.
     #[arg(long)]
     pub json: bool,
@@ -47,6 +51,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         max_centres: args.max_centres,
         reduce_centres: args.reduce,
         seed: args.seed,
+        solver: parse_solver(&args.solver)?,
         ..FitOptions::default()
     };
     let progress = crate::progress::BarProgress::new();
@@ -71,4 +76,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// `--solver` for `fit` and `extract`.
+pub fn parse_solver(text: &str) -> anyhow::Result<SolverChoice> {
+    Ok(match text.to_ascii_lowercase().as_str() {
+        "auto" => SolverChoice::Auto,
+        "direct" => SolverChoice::Direct,
+        "pu" => SolverChoice::PartitionOfUnity,
+        "fast" => SolverChoice::Fast,
+        other => anyhow::bail!("--solver {other}: expected auto, direct, pu or fast"),
+    })
 }
