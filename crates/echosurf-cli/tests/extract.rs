@@ -11,6 +11,20 @@ fn echosurf(args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// `echosurf compare MESH TRUTH --json`, which must succeed on an oriented manifold mesh.
+fn compare_manifold(mesh: &Path, truth: &Path) -> serde_json::Value {
+    let cmp = echosurf(&[
+        "compare",
+        mesh.to_str().unwrap(),
+        truth.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(cmp.status.success(), "{}", mesh.display());
+    let c: serde_json::Value = serde_json::from_slice(&cmp.stdout).unwrap();
+    assert_eq!(c["mesh_oriented_manifold"], true, "{}: {c}", mesh.display());
+    c
+}
+
 fn simulate(dir: &Path) -> (PathBuf, PathBuf) {
     let out = echosurf(&[
         "simulate",
@@ -92,15 +106,7 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
     );
 
     let truth = dir.path().join("truth.ply");
-    let cmp = echosurf(&[
-        "compare",
-        mesh.to_str().unwrap(),
-        truth.to_str().unwrap(),
-        "--json",
-    ]);
-    assert!(cmp.status.success());
-    let c: serde_json::Value = serde_json::from_slice(&cmp.stdout).unwrap();
-    assert_eq!(c["mesh_oriented_manifold"], true, "{c}");
+    let c = compare_manifold(&mesh, &truth);
     // Loose bounds for a 10k-sample fit of a 30-frame sweep (measured: median 1.8 mm, 19% of the whole
     // sphere within 1 mm; only its beam-facing cap is ever imaged). A broken stage lands far outside.
     let median = c["accuracy"]["median_mm"].as_f64().unwrap();
@@ -127,15 +133,7 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
     let mut triangles = Vec::new();
     for name in ["levels_iso25.ply", "levels_iso40.ply"] {
         let path = dir.path().join(name);
-        let c = echosurf(&[
-            "compare",
-            path.to_str().unwrap(),
-            truth.to_str().unwrap(),
-            "--json",
-        ]);
-        assert!(c.status.success(), "{name}");
-        let c: serde_json::Value = serde_json::from_slice(&c.stdout).unwrap();
-        assert_eq!(c["mesh_oriented_manifold"], true, "{name}: {c}");
+        let c = compare_manifold(&path, &truth);
         triangles.push(c["mesh_topology"]["triangles"].as_u64().unwrap());
     }
     assert!(triangles[0] > triangles[1], "{triangles:?}");
@@ -237,15 +235,7 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
             "{sheet}: {}",
             String::from_utf8_lossy(&out.stderr)
         );
-        let cmp = echosurf(&[
-            "compare",
-            mesh.to_str().unwrap(),
-            truth.to_str().unwrap(),
-            "--json",
-        ]);
-        assert!(cmp.status.success(), "{sheet}");
-        let c: serde_json::Value = serde_json::from_slice(&cmp.stdout).unwrap();
-        assert_eq!(c["mesh_oriented_manifold"], true, "{sheet}: {c}");
+        let c = compare_manifold(&mesh, &truth);
         assert!(
             c["mesh_topology"]["triangles"].as_u64().unwrap() > 100,
             "{sheet}: {c}"
