@@ -299,16 +299,23 @@ pub fn write_preview(
     Ok(())
 }
 
-fn print_sample_counts(c: &pipeline::StageCounts) {
+fn print_sample_counts(c: &pipeline::StageCounts, fit: Option<&echosurf::rbf::FitReport>) {
+    // Partition of unity stores each patch's samples, overlaps included: not a reduction of the samples.
+    let model = match fit {
+        Some(f) if f.patches > 0 => format!(
+            "{} patches of {:.0} samples on average",
+            f.patches, f.mean_patch_points
+        ),
+        _ => format!("{} centres", c.centres),
+    };
     println!(
-        "{} of {} frames used; kept {} of {} pixels ({:.1}%); {} samples -> {} centres",
+        "{} of {} frames used; kept {} of {} pixels ({:.1}%); {} samples -> {model}",
         c.frames_used,
         c.frames,
         c.kept_pixels,
         c.pixels,
         100.0 * c.kept_pixels as f64 / c.pixels.max(1) as f64,
         c.samples,
-        c.centres
     );
 }
 
@@ -321,7 +328,7 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
             c.frames_used, c.frames, c.pixels
         );
     } else {
-        print_sample_counts(c);
+        print_sample_counts(c, r.fit.as_ref());
     }
     if let Some(l) = r.levels {
         println!(
