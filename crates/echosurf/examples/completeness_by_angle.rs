@@ -43,7 +43,7 @@ fn main() -> echosurf::Result<()> {
         options.sheet = echosurf::pipeline::Sheet::EchoRidge;
     }
     if let Some(v) = env("MINCOMP") {
-        options.min_component_area_mm2 = v;
+        options.min_component_area_mm2 = Some(v);
     }
     if env("CHAIN") == Some(1.0) {
         options.segment = echosurf::segment::SegmentOptions::chained();

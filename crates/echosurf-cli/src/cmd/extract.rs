@@ -69,9 +69,10 @@ pub struct Args {
     /// (its proximal sheet moved onto the echo's ridge: closer to the boundary, fewer of its parts).
     #[arg(long, default_value = "iso")]
     pub sheet: String,
-    /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all.
-    #[arg(long, default_value_t = pipeline::DEFAULT_MIN_COMPONENT_AREA_MM2)]
-    pub min_component_area: f64,
+    /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all. Default: 5 for the
+    /// iso sheet, 0.5 for the ridge sheet (a mosaic of small pieces).
+    #[arg(long)]
+    pub min_component_area: Option<f64>,
     /// Seed of the random decimation (and of everything else random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -218,12 +219,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "ridge" => Sheet::EchoRidge,
             other => anyhow::bail!("--sheet {other}: expected iso or ridge"),
         },
-        min_component_area_mm2: if args.min_component_area.is_finite()
-            && args.min_component_area >= 0.0
-        {
-            args.min_component_area
-        } else {
-            anyhow::bail!("--min-component-area must be an area in mm^2 >= 0")
+        min_component_area_mm2: match args.min_component_area {
+            Some(a) if !(a.is_finite() && a >= 0.0) => {
+                anyhow::bail!("--min-component-area must be an area in mm^2 >= 0")
+            }
+            a => a,
         },
         memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
     };
