@@ -11,6 +11,20 @@ fn echosurf(args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// `echosurf extract SEQ --config CONFIG --out OUT` followed by `extra`.
+fn extract(seq: &Path, config: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "extract",
+        seq.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    echosurf(&args)
+}
+
 /// `echosurf compare MESH TRUTH --json`, which must succeed on an oriented manifold mesh.
 fn compare_manifold(mesh: &Path, truth: &Path) -> serde_json::Value {
     let cmp = echosurf(&[
@@ -59,22 +73,21 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
     let report = dir.path().join("report.json");
     let preview = dir.path().join("preview.png");
     let model = dir.path().join("fit.esrbf");
-    let out = echosurf(&[
-        "extract",
-        seq.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-        "--out",
-        mesh.to_str().unwrap(),
-        "--max-samples",
-        "10000",
-        "--report",
-        report.to_str().unwrap(),
-        "--preview",
-        preview.to_str().unwrap(),
-        "--model",
-        model.to_str().unwrap(),
-    ]);
+    let out = extract(
+        &seq,
+        &config,
+        &mesh,
+        &[
+            "--max-samples",
+            "10000",
+            "--report",
+            report.to_str().unwrap(),
+            "--preview",
+            preview.to_str().unwrap(),
+            "--model",
+            model.to_str().unwrap(),
+        ],
+    );
     assert!(
         out.status.success(),
         "{}",
@@ -154,19 +167,15 @@ fn extract_refuses_bad_requests_without_writing() {
     let dir = tempfile::tempdir().unwrap();
     let (seq, config) = simulate(dir.path());
     let mesh = dir.path().join("mesh.ply");
-    let base = [
-        "extract",
-        seq.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-        "--out",
-        mesh.to_str().unwrap(),
-        "--max-samples",
-        "2000",
-    ];
+    let small = ["--max-samples", "2000"];
 
     // An iso-level above every grey level cannot give a surface.
-    let out = echosurf(&[&base[..], &["--iso", "300"]].concat());
+    let out = extract(
+        &seq,
+        &config,
+        &mesh,
+        &[&small[..], &["--iso", "300"]].concat(),
+    );
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -176,7 +185,12 @@ fn extract_refuses_bad_requests_without_writing() {
     assert!(!err.contains("panicked"));
     assert!(!mesh.exists());
 
-    let out = echosurf(&[&base[..], &["--iso", "fifty"]].concat());
+    let out = extract(
+        &seq,
+        &config,
+        &mesh,
+        &[&small[..], &["--iso", "fifty"]].concat(),
+    );
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("not a number"));
 
@@ -187,14 +201,7 @@ fn extract_refuses_bad_requests_without_writing() {
         "<PlusConfiguration><CoordinateDefinitions/></PlusConfiguration>",
     )
     .unwrap();
-    let out = echosurf(&[
-        "extract",
-        seq.to_str().unwrap(),
-        "--config",
-        bad_config.to_str().unwrap(),
-        "--out",
-        mesh.to_str().unwrap(),
-    ]);
+    let out = extract(&seq, &bad_config, &mesh, &[]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("no_calibration.xml"), "{err}");
@@ -218,18 +225,12 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
     let mut medians = Vec::new();
     for sheet in ["iso", "ridge"] {
         let mesh = dir.path().join(format!("{sheet}.ply"));
-        let out = echosurf(&[
-            "extract",
-            seq.to_str().unwrap(),
-            "--config",
-            config.to_str().unwrap(),
-            "--out",
-            mesh.to_str().unwrap(),
-            "--max-samples",
-            "10000",
-            "--sheet",
-            sheet,
-        ]);
+        let out = extract(
+            &seq,
+            &config,
+            &mesh,
+            &["--max-samples", "10000", "--sheet", sheet],
+        );
         assert!(
             out.status.success(),
             "{sheet}: {}",
@@ -247,16 +248,12 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
         medians[0], medians[1]
     );
     assert!(medians[1] < 0.8 * medians[0], "{medians:?}");
-    let bad = echosurf(&[
-        "extract",
-        seq.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-        "--out",
-        dir.path().join("bad.ply").to_str().unwrap(),
-        "--sheet",
-        "middle",
-    ]);
+    let bad = extract(
+        &seq,
+        &config,
+        &dir.path().join("bad.ply"),
+        &["--sheet", "middle"],
+    );
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--sheet middle"));
 }
