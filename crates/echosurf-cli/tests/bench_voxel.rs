@@ -143,7 +143,14 @@ fn bench_quick_writes_table_json_and_plots() {
     assert_eq!(routes.len(), 2);
     for r in routes {
         assert!(r["seconds"].as_f64().unwrap() > 0.0);
+        // Both completeness scores are shares; the sphere's cap faces the beam, so the strong-echo
+        // mask is not empty.
+        for key in ["completeness_1mm", "completeness_strong_echo_1mm"] {
+            let c = r[key].as_f64().unwrap_or(f64::NAN);
+            assert!((0.0..=1.0).contains(&c), "{key} {r}");
+        }
     }
+    assert!(table.contains("completeness, <= 30 deg"), "{table}");
     for svg in ["accuracy_vs_time.svg", "fit_scaling.svg"] {
         let text = std::fs::read_to_string(out.join(svg)).unwrap();
         assert!(text.starts_with("<svg"), "{svg}");

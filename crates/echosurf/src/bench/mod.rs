@@ -7,7 +7,9 @@
 //! `max(1.5 mm, median frame spacing)` of the image plane, and its normal is within 60 degrees of that
 //! frame's beam axis (either sign: the front and back walls of a specular boundary both echo, side walls
 //! beyond 60 degrees do not, cos^12 falls to 2e-4 there). No route can be asked to find what was never
-//! imaged.
+//! imaged. A second score counts only the truth within [`STRONG_ECHO_DEG`] (30 degrees) of the beam,
+//! where the simulated specular echo is strong (from about 40 degrees on it is below the object's own
+//! speckle, so the 60-degree share includes walls no echo shows).
 
 pub mod svg;
 
@@ -243,6 +245,8 @@ pub struct RouteResult {
     pub accuracy_p95_mm: f64,
     /// Share of the swept, beam-facing truth within 1 mm of the mesh.
     pub completeness_1mm: f64,
+    /// The same for truth facing the beam within [`STRONG_ECHO_DEG`] (NaN when there is none).
+    pub completeness_strong_echo_1mm: f64,
     pub seconds: f64,
     /// Peak resident memory during the route above the resident memory at its start.
     pub peak_extra_bytes: Option<u64>,
@@ -259,6 +263,10 @@ fn median_spacing(frames: &[DMat4]) -> Option<f64> {
     d.sort_by(f64::total_cmp);
     d.get(d.len() / 2).copied()
 }
+
+/// Walls within this angle of the beam return a strong specular echo in the simulator (cos^12: at least
+/// 18 % of normal incidence); the benchmark also scores completeness on them alone.
+pub const STRONG_ECHO_DEG: f64 = 30.0;
 
 /// Runs both routes on a case and scores them.
 pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteResult>> {
@@ -280,6 +288,15 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
             case.name
         )));
     }
+    let strong_mask = swept_beam_facing_mask(
+        &case.truth,
+        &case.true_image_to_world,
+        case.sequence.width,
+        case.sequence.height,
+        case.calibration.clip,
+        plane_distance,
+        STRONG_ECHO_DEG,
+    );
     let compare = CompareOptions {
         samples_per_mm2: if options.quick { 2.0 } else { 5.0 },
         min_samples: if options.quick { 2_000 } else { 20_000 },
@@ -287,6 +304,10 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
         seed: options.seed,
         truth_mask: Some(mask),
     };
+    let compare_strong = strong_mask.iter().any(|&m| m).then(|| CompareOptions {
+        truth_mask: Some(strong_mask),
+        ..compare.clone()
+    });
     let mut results = Vec::new();
     for (route, method) in [
         ("rbf", Method::Rbf),
@@ -317,6 +338,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
             accuracy_mean_mm: f64::NAN,
             accuracy_p95_mm: f64::NAN,
             completeness_1mm: 0.0,
+            completeness_strong_echo_1mm: f64::NAN,
             seconds,
             peak_extra_bytes: None,
             error: None,
@@ -344,6 +366,12 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
                         }
                         Err(e) => result.error = Some(e.to_string()),
                     }
+                    if let Some(strong) = &compare_strong {
+                        match compare_meshes(&mesh, &case.truth, strong) {
+                            Ok(c) => result.completeness_strong_echo_1mm = c.completeness_1mm,
+                            Err(e) => result.error = Some(e.to_string()),
+                        }
+                    }
                 }
             }
         }
@@ -359,8 +387,8 @@ fn mb(bytes: Option<u64>) -> String {
 /// The results as a markdown table, one row per case and route.
 pub fn markdown_table(results: &[RouteResult]) -> String {
     let mut out = String::from(
-        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | components | triangles | time (s) | peak extra memory (MB) |\n\
-         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | completeness, <= 30 deg (1 mm) | components | triangles | time (s) | peak extra memory (MB) |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in results {
         let note = r
@@ -369,7 +397,7 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
             .map(|e| format!(" ({e})"))
             .unwrap_or_default();
         out.push_str(&format!(
-            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {} | {} | {:.2} | {} |\n",
+            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {:.1} % | {} | {} | {:.2} | {} |\n",
             r.case,
             r.route,
             note,
@@ -377,6 +405,7 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
             r.accuracy_mean_mm,
             r.accuracy_p95_mm,
             100.0 * r.completeness_1mm,
+            100.0 * r.completeness_strong_echo_1mm,
             r.components,
             r.triangles,
             r.seconds,
