@@ -157,3 +157,42 @@ fn bench_quick_writes_table_json_and_plots() {
         assert!(text.trim_end().ends_with("</svg>"), "{svg}");
     }
 }
+
+#[test]
+fn bench_fit_runs_only_the_fit_scaling() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("fit");
+    let run = echosurf(&[
+        "bench",
+        "fit",
+        "--fit-max",
+        "1000",
+        "--solver",
+        "fast",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(table.starts_with("| samples |"), "{table}");
+    assert!(
+        table.contains("\n| 1000 |") && !table.contains("| case |"),
+        "{table}"
+    );
+    assert!(out.join("fit_scaling.svg").exists());
+    assert!(!out.join("accuracy_vs_time.svg").exists());
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("bench.json")).unwrap()).unwrap();
+    assert_eq!(json["routes"].as_array().unwrap().len(), 0);
+    assert_eq!(json["fit_scaling"][0]["solver"], "Fast", "{json}");
+    let bad = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+        .args(["bench", "everything"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("expected all, routes or fit"));
+}

@@ -17,6 +17,13 @@ use super::extract::parse_iso;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// What to run: `all` (default), `routes` (RBF vs voxel on the phantoms and cases) or `fit` (the fit's
+    /// time, iterations and memory against the number of samples).
+    #[arg(default_value = "all")]
+    pub what: String,
+    /// Solver of the fit-scaling run: auto, direct, pu or fast.
+    #[arg(long, default_value = "auto")]
+    pub solver: String,
     /// Directory for table.md, bench.json, accuracy_vs_time.svg and fit_scaling.svg.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -66,14 +73,25 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.voxel_smoothing.is_finite() && args.voxel_smoothing >= 0.0) {
         anyhow::bail!("--voxel-smoothing must be a non-negative number of mm");
     }
+    let (run_routes, run_fit) = match args.what.to_ascii_lowercase().as_str() {
+        "all" => (true, true),
+        "routes" => (true, false),
+        "fit" => (false, true),
+        other => anyhow::bail!("bench {other}: expected all, routes or fit"),
+    };
+    let solver = super::fit::parse_solver(&args.solver)?;
     let noise = parse_noise(&args.noise)?;
-    let phantoms: Vec<PhantomKind> = args
-        .phantoms
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-        .map(PhantomKind::parse)
-        .collect();
+    let phantoms: Vec<PhantomKind> = if run_routes {
+        args.phantoms
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .map(PhantomKind::parse)
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let cases: &[String] = if run_routes { &args.case } else { &[] };
     let options = BenchOptions {
         quick: args.quick,
         iso: parse_iso(&args.iso)?,
@@ -104,7 +122,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             results.extend(bench::run_case(&case, &options)?);
         }
     }
-    for spec in &args.case {
+    for spec in cases {
         let parts: Vec<&str> = spec.split(',').map(str::trim).collect();
         let [seq, config, truth] = parts[..] else {
             anyhow::bail!("--case {spec}: expected SEQUENCE,CONFIG,TRUTH_MESH");
@@ -120,17 +138,32 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let fit_max = args
         .fit_max
         .unwrap_or(if args.quick { 3_000 } else { 100_000 });
-    let sizes = fit_sizes(fit_max);
+    let sizes = if run_fit {
+        fit_sizes(fit_max)
+    } else {
+        Vec::new()
+    };
     let scaling = if sizes.is_empty() {
         Vec::new()
     } else {
         eprintln!("bench: fit scaling at {sizes:?} samples ...");
-        bench_fit_scaling(&sizes, &FitOptions::default(), args.seed)?
+        let fit_options = FitOptions {
+            solver,
+            ..FitOptions::default()
+        };
+        bench_fit_scaling(&sizes, &fit_options, args.seed)?
     };
 
-    let mut table = markdown_table(&results);
+    let mut table = if run_routes {
+        markdown_table(&results)
+    } else {
+        String::new()
+    };
     if !scaling.is_empty() {
-        table.push_str("\n| samples | fit (s) | iterations | max residual | evaluate N points (s) | solver bytes / sample |\n|---:|---:|---:|---:|---:|---:|\n");
+        if !table.is_empty() {
+            table.push('\n');
+        }
+        table.push_str("| samples | fit (s) | iterations | max residual | evaluate N points (s) | solver bytes / sample |\n|---:|---:|---:|---:|---:|---:|\n");
         for r in &scaling {
             table.push_str(&format!(
                 "| {} | {:.2} | {} | {:.2} | {:.3} | {:.0} |\n",
@@ -153,6 +186,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "max_samples": options.max_samples,
                 "voxel_smoothing_mm": args.voxel_smoothing,
                 "seed": args.seed,
+                "what": args.what,
+                "solver": args.solver,
             },
             "routes": results,
             "fit_scaling": scaling,
@@ -161,10 +196,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             &dir.join("bench.json"),
             serde_json::to_string_pretty(&json)?.as_bytes(),
         )?;
-        write_bytes_atomic(
-            &dir.join("accuracy_vs_time.svg"),
-            accuracy_vs_time_plot(&results).to_svg().as_bytes(),
-        )?;
+        if run_routes {
+            write_bytes_atomic(
+                &dir.join("accuracy_vs_time.svg"),
+                accuracy_vs_time_plot(&results).to_svg().as_bytes(),
+            )?;
+        }
         if !scaling.is_empty() {
             write_bytes_atomic(
                 &dir.join("fit_scaling.svg"),
