@@ -11,6 +11,15 @@ pub struct Mesh {
     pub triangles: Vec<[u32; 3]>,
 }
 
+/// Root of `i` in a union-find forest, halving the path on the way.
+fn find_root(parent: &mut [usize], mut i: usize) -> usize {
+    while parent[i] != i {
+        parent[i] = parent[parent[i]];
+        i = parent[i];
+    }
+    i
+}
+
 impl Mesh {
     pub fn is_empty(&self) -> bool {
         self.triangles.is_empty()
@@ -92,13 +101,6 @@ impl Mesh {
         let mut seen_faces = std::collections::HashSet::with_capacity(self.triangles.len());
         let mut used = vec![false; self.vertices.len()];
         let mut parent: Vec<usize> = (0..self.triangles.len()).collect();
-        fn find(parent: &mut [usize], mut i: usize) -> usize {
-            while parent[i] != i {
-                parent[i] = parent[parent[i]];
-                i = parent[i];
-            }
-            i
-        }
         let mut first_face_of_edge: HashMap<(u32, u32), usize> = HashMap::new();
         for (f, tri) in self.triangles.iter().enumerate() {
             let [a, b, c] = *tri;
@@ -126,7 +128,7 @@ impl Mesh {
                 e.1 += dir;
                 match first_face_of_edge.get(&(lo, hi)) {
                     Some(&g) => {
-                        let (rf, rg) = (find(&mut parent, f), find(&mut parent, g));
+                        let (rf, rg) = (find_root(&mut parent, f), find_root(&mut parent, g));
                         if rf != rg {
                             parent[rf] = rg;
                         }
@@ -156,7 +158,10 @@ impl Mesh {
                         .all(|&i| (i as usize) < self.vertices.len())
             })
             .collect();
-        let mut roots: Vec<usize> = valid_faces.iter().map(|&f| find(&mut parent, f)).collect();
+        let mut roots: Vec<usize> = valid_faces
+            .iter()
+            .map(|&f| find_root(&mut parent, f))
+            .collect();
         roots.sort_unstable();
         roots.dedup();
         topo.components = roots.len();
@@ -173,13 +178,6 @@ impl Mesh {
         let n = self.vertices.len();
         let faces = self.triangles.len();
         let mut parent: Vec<usize> = (0..faces).collect();
-        fn find(parent: &mut [usize], mut i: usize) -> usize {
-            while parent[i] != i {
-                parent[i] = parent[parent[i]];
-                i = parent[i];
-            }
-            i
-        }
         let mut first_face_of_edge: std::collections::HashMap<(u32, u32), usize> =
             std::collections::HashMap::with_capacity(faces * 2);
         let mut area = vec![0.0f64; faces];
@@ -194,7 +192,7 @@ impl Mesh {
                 let key = (x.min(y), x.max(y));
                 match first_face_of_edge.get(&key) {
                     Some(&g) => {
-                        let (rf, rg) = (find(&mut parent, f), find(&mut parent, g));
+                        let (rf, rg) = (find_root(&mut parent, f), find_root(&mut parent, g));
                         if rf != rg {
                             parent[rf.max(rg)] = rf.min(rg);
                         }
@@ -207,12 +205,12 @@ impl Mesh {
         }
         let mut component_area = vec![0.0f64; faces];
         for (f, a) in area.iter().enumerate() {
-            let r = find(&mut parent, f);
+            let r = find_root(&mut parent, f);
             component_area[r] += a;
         }
         let keep: Vec<bool> = (0..faces)
             .map(|f| {
-                let r = find(&mut parent, f);
+                let r = find_root(&mut parent, f);
                 self.triangles[f].iter().all(|&i| (i as usize) < n)
                     && component_area[r] >= min_area_mm2
             })
@@ -271,13 +269,6 @@ impl Mesh {
             }
             parent.clear();
             parent.extend(0..faces.len());
-            fn find(parent: &mut [usize], mut i: usize) -> usize {
-                while parent[i] != i {
-                    parent[i] = parent[parent[i]];
-                    i = parent[i];
-                }
-                i
-            }
             // Triangles around v sharing an edge (v, x) belong to one fan.
             first_by_neighbour.clear();
             for (k, &f) in faces.iter().enumerate() {
@@ -290,13 +281,18 @@ impl Mesh {
             first_by_neighbour.sort_unstable();
             for pair in first_by_neighbour.windows(2) {
                 if pair[0].0 == pair[1].0 {
-                    let (a, b) = (find(&mut parent, pair[0].1), find(&mut parent, pair[1].1));
+                    let (a, b) = (
+                        find_root(&mut parent, pair[0].1),
+                        find_root(&mut parent, pair[1].1),
+                    );
                     if a != b {
                         parent[a.max(b)] = a.min(b);
                     }
                 }
             }
-            let roots: Vec<usize> = (0..faces.len()).map(|k| find(&mut parent, k)).collect();
+            let roots: Vec<usize> = (0..faces.len())
+                .map(|k| find_root(&mut parent, k))
+                .collect();
             let mut fans: Vec<usize> = roots.clone();
             fans.sort_unstable();
             fans.dedup();
@@ -349,16 +345,12 @@ impl Mesh {
             parent.clear();
             parent.extend(0..ids.len());
             let idx = |x: u32| ids.binary_search(&x).unwrap_or(0);
-            fn find(parent: &mut [usize], mut i: usize) -> usize {
-                while parent[i] != i {
-                    parent[i] = parent[parent[i]];
-                    i = parent[i];
-                }
-                i
-            }
             let mut pieces = ids.len();
             for &(u, v) in edges {
-                let (ru, rv) = (find(&mut parent, idx(u)), find(&mut parent, idx(v)));
+                let (ru, rv) = (
+                    find_root(&mut parent, idx(u)),
+                    find_root(&mut parent, idx(v)),
+                );
                 if ru != rv {
                     parent[ru] = rv;
                     pieces -= 1;
