@@ -134,13 +134,17 @@ fn bench_quick_writes_table_json_and_plots() {
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
     assert_eq!(stdout, table);
     // Header, rule, one row per route; then the fit-scaling table with one row (1000 samples).
-    assert!(table.contains("| sphere / default | rbf"), "{table}");
-    assert!(table.contains("| sphere / default | voxel"), "{table}");
+    for route in ["rbf", "rbf-ridge", "voxel"] {
+        assert!(
+            table.contains(&format!("| sphere / default | {route} |")),
+            "{table}"
+        );
+    }
     assert!(table.contains("\n| 1000 |"), "{table}");
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("bench.json")).unwrap()).unwrap();
     let routes = json["routes"].as_array().unwrap();
-    assert_eq!(routes.len(), 2);
+    assert_eq!(routes.len(), 3);
     for r in routes {
         assert!(r["seconds"].as_f64().unwrap() > 0.0);
         // Both completeness scores are shares; the sphere's cap faces the beam, so the strong-echo

@@ -3,7 +3,8 @@
 //! angle between the truth's normal and the nearest sweeping frame's beam, and per facing sign (outward
 //! normal against the beam: the side facing the probe). Environment overrides: `MAXS` (sample budget),
 //! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`, `RIDGE=1` (ridge sheet),
-//! `MINCOMP` (smallest piece kept, mm^2), `CHAIN=1` (chained edgels), `SEED`.
+//! `MINCOMP` (smallest piece kept, mm^2), `CHAIN=1` (chained edgels), `SEED`, and for the ridge sheet
+//! `SHEET_H` (smoothing mm), `SHEET_REACH` (mm), `HOLE` (largest hole closed, perimeter mm).
 //! `cargo run --release --example completeness_by_angle -- duck [mesh.ply]`
 use echosurf::metrics::{CompareOptions, compare_meshes, triangle_mask};
 use echosurf::pipeline::{self, ExtractOptions};
@@ -38,6 +39,15 @@ fn main() -> echosurf::Result<()> {
     }
     if let Some(v) = env("ECHO") {
         options.echo_margin_mm = if v > 0.0 { Some(v) } else { None };
+    }
+    if let Some(v) = env("SHEET_H") {
+        options.echo_sheet.smoothing_mm = v;
+    }
+    if let Some(v) = env("SHEET_REACH") {
+        options.echo_sheet.reach_mm = v;
+    }
+    if let Some(v) = env("HOLE") {
+        options.echo_sheet.max_hole_perimeter_mm = v;
     }
     if env("RIDGE") == Some(1.0) {
         options.sheet = echosurf::pipeline::Sheet::EchoRidge;

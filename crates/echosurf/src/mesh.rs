@@ -172,50 +172,153 @@ impl Mesh {
         topo
     }
 
-    /// Removes the edge-connected components whose area is below `min_area_mm2` (isolated speckle blobs
-    /// and shreds of a surface) and the vertices no triangle uses any more. Returns the triangles removed.
-    pub fn remove_small_components(&mut self, min_area_mm2: f64) -> usize {
+    /// The edge-connected component of every triangle, as the smallest triangle index in it
+    /// (triangles with an out-of-range vertex are components of their own).
+    pub fn triangle_components(&self) -> Vec<usize> {
         let n = self.vertices.len();
         let faces = self.triangles.len();
         let mut parent: Vec<usize> = (0..faces).collect();
         let mut first_face_of_edge: std::collections::HashMap<(u32, u32), usize> =
             std::collections::HashMap::with_capacity(faces * 2);
-        let mut area = vec![0.0f64; faces];
         for (f, t) in self.triangles.iter().enumerate() {
             if t.iter().any(|&i| i as usize >= n) {
                 continue;
             }
-            let [a, b, c] = t.map(|i| self.vertices[i as usize]);
-            area[f] = 0.5 * (b - a).cross(c - a).length();
             for k in 0..3 {
                 let (x, y) = (t[k], t[(k + 1) % 3]);
-                let key = (x.min(y), x.max(y));
-                match first_face_of_edge.get(&key) {
-                    Some(&g) => {
-                        let (rf, rg) = (find_root(&mut parent, f), find_root(&mut parent, g));
+                match first_face_of_edge.entry((x.min(y), x.max(y))) {
+                    std::collections::hash_map::Entry::Occupied(e) => {
+                        let (rf, rg) =
+                            (find_root(&mut parent, f), find_root(&mut parent, *e.get()));
                         if rf != rg {
                             parent[rf.max(rg)] = rf.min(rg);
                         }
                     }
-                    None => {
-                        first_face_of_edge.insert(key, f);
+                    std::collections::hash_map::Entry::Vacant(e) => {
+                        e.insert(f);
                     }
                 }
             }
         }
-        let mut component_area = vec![0.0f64; faces];
-        for (f, a) in area.iter().enumerate() {
-            let r = find_root(&mut parent, f);
-            component_area[r] += a;
+        (0..faces).map(|f| find_root(&mut parent, f)).collect()
+    }
+
+    /// Removes the edge-connected components whose area is below `min_area_mm2` (isolated speckle blobs
+    /// and shreds of a surface) and the vertices no triangle uses any more. Returns the triangles removed.
+    pub fn remove_small_components(&mut self, min_area_mm2: f64) -> usize {
+        let n = self.vertices.len();
+        let component = self.triangle_components();
+        let mut component_area = vec![0.0f64; self.triangles.len()];
+        let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
+        for (f, t) in self.triangles.iter().enumerate() {
+            if valid(t) {
+                let [a, b, c] = t.map(|i| self.vertices[i as usize]);
+                component_area[component[f]] += 0.5 * (b - a).cross(c - a).length();
+            }
         }
-        let keep: Vec<bool> = (0..faces)
-            .map(|f| {
-                let r = find_root(&mut parent, f);
-                self.triangles[f].iter().all(|&i| (i as usize) < n)
-                    && component_area[r] >= min_area_mm2
-            })
+        let keep: Vec<bool> = (0..self.triangles.len())
+            .map(|f| valid(&self.triangles[f]) && component_area[component[f]] >= min_area_mm2)
             .collect();
-        let removed = keep.iter().filter(|&&k| !k).count();
+        self.retain_triangles(&keep)
+    }
+
+    /// Closes every hole whose boundary loop is at most `max_perimeter_mm` long with a fan of triangles
+    /// around the mean of the loop's vertices; a component's longest loop is its outer edge and stays
+    /// open. Loops through a vertex with two boundary fans are left alone (split pinched vertices
+    /// first). For a manifold mesh with consistent winding; returns the holes closed.
+    pub fn fill_small_holes(&mut self, max_perimeter_mm: f64) -> usize {
+        let n = self.vertices.len();
+        let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
+        let mut directed: std::collections::HashMap<(u32, u32), usize> =
+            std::collections::HashMap::with_capacity(self.triangles.len() * 3);
+        for (f, t) in self.triangles.iter().enumerate().filter(|(_, t)| valid(t)) {
+            for k in 0..3 {
+                directed.insert((t[k], t[(k + 1) % 3]), f);
+            }
+        }
+        // Boundary edges (no twin), keyed by their start; a vertex starting two is ambiguous.
+        let mut next: std::collections::HashMap<u32, (u32, usize)> = Default::default();
+        let mut ambiguous = std::collections::HashSet::new();
+        let mut boundary: Vec<(u32, u32, usize)> = directed
+            .iter()
+            .filter(|((a, b), _)| !directed.contains_key(&(*b, *a)))
+            .map(|(&(a, b), &f)| (a, b, f))
+            .collect();
+        boundary.sort_unstable();
+        for &(a, b, f) in &boundary {
+            if next.insert(a, (b, f)).is_some() {
+                ambiguous.insert(a);
+            }
+        }
+        let component = self.triangle_components();
+        // Loops: (vertices in boundary order, perimeter, component).
+        let mut loops: Vec<(Vec<u32>, f64, usize)> = Vec::new();
+        let mut seen = std::collections::HashSet::new();
+        for &(start, _, f) in &boundary {
+            if seen.contains(&start) {
+                continue;
+            }
+            let (mut cycle, mut perimeter, mut v, mut ok) = (Vec::new(), 0.0, start, true);
+            loop {
+                if !seen.insert(v) {
+                    ok &= v == start;
+                    break;
+                }
+                ok &= !ambiguous.contains(&v);
+                cycle.push(v);
+                let Some(&(w, _)) = next.get(&v) else {
+                    ok = false;
+                    break;
+                };
+                perimeter += self.vertices[v as usize].distance(self.vertices[w as usize]);
+                v = w;
+            }
+            if ok && cycle.len() >= 3 {
+                loops.push((cycle, perimeter, component[f]));
+            }
+        }
+        let mut longest: std::collections::HashMap<usize, f64> = Default::default();
+        for (_, perimeter, c) in &loops {
+            let l = longest.entry(*c).or_insert(0.0);
+            *l = l.max(*perimeter);
+        }
+        let has_normals = self.normals.len() == n;
+        let mut filled = 0;
+        for (cycle, perimeter, c) in loops {
+            if perimeter > max_perimeter_mm || perimeter >= longest[&c] {
+                continue;
+            }
+            let centre = self.vertices.len() as u32;
+            let k = cycle.len() as f64;
+            self.vertices.push(
+                cycle
+                    .iter()
+                    .map(|&v| self.vertices[v as usize])
+                    .sum::<DVec3>()
+                    / k,
+            );
+            if has_normals {
+                let normal: DVec3 = cycle.iter().map(|&v| self.normals[v as usize]).sum();
+                self.normals.push(normal.normalize_or(DVec3::Z));
+            }
+            // The loop runs along the existing triangles' edges a -> b; the new ones use b -> a.
+            for (i, &a) in cycle.iter().enumerate() {
+                let b = cycle[(i + 1) % cycle.len()];
+                self.triangles.push([b, a, centre]);
+            }
+            filled += 1;
+        }
+        filled
+    }
+
+    /// Keeps the triangles whose flag in `keep` (one per triangle) is set, and the vertices they use
+    /// (renumbered in order of first use). Returns the triangles removed.
+    pub fn retain_triangles(&mut self, keep: &[bool]) -> usize {
+        let n = self.vertices.len();
+        let faces = self.triangles.len();
+        let removed = (0..faces)
+            .filter(|&f| !keep.get(f).copied().unwrap_or(false))
+            .count();
         if removed == 0 {
             return 0;
         }
@@ -225,7 +328,7 @@ impl Mesh {
         let has_normals = self.normals.len() == n;
         let mut triangles = Vec::with_capacity(faces - removed);
         for (f, t) in self.triangles.iter().enumerate() {
-            if !keep[f] {
+            if !keep[f] || t.iter().any(|&i| i as usize >= n) {
                 continue;
             }
             triangles.push(t.map(|i| {
@@ -394,6 +497,54 @@ mod tests {
     }
 
     use super::*;
+
+    /// A `k` x `k` grid of unit squares in z = 0 (two triangles each, facing +z) without the squares
+    /// listed in `holes` (as (column, row)).
+    fn grid_with_holes(k: u32, holes: &[(u32, u32)]) -> Mesh {
+        let mut mesh = Mesh::default();
+        for j in 0..=k {
+            for i in 0..=k {
+                mesh.vertices.push(DVec3::new(i as f64, j as f64, 0.0));
+                mesh.normals.push(DVec3::Z);
+            }
+        }
+        let at = |i: u32, j: u32| j * (k + 1) + i;
+        for j in 0..k {
+            for i in 0..k {
+                if !holes.contains(&(i, j)) {
+                    let (a, b, c, d) = (at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1));
+                    mesh.triangles.push([a, b, c]);
+                    mesh.triangles.push([a, c, d]);
+                }
+            }
+        }
+        mesh
+    }
+
+    #[test]
+    fn small_holes_are_closed_and_the_outer_edge_is_not() {
+        // Two one-square holes (perimeter 4) and one three-square hole (perimeter 8) in a 6 x 6 grid.
+        let mut mesh = grid_with_holes(6, &[(1, 1), (4, 1), (1, 4), (2, 4), (3, 4)]);
+        let before = mesh.topology();
+        assert!(before.is_oriented_manifold() && before.boundary_edges == 24 + 4 + 4 + 8);
+        let area = mesh.area_mm2();
+        assert_eq!(mesh.fill_small_holes(5.0), 2);
+        let after = mesh.topology();
+        assert!(after.is_oriented_manifold(), "{after:?}");
+        assert_eq!(after.boundary_edges, 24 + 8);
+        assert!((mesh.area_mm2() - area - 2.0).abs() < 1e-12);
+        assert_eq!(mesh.normals.len(), mesh.vertices.len());
+        // The new triangles face the same way as the old ones.
+        for t in &mesh.triangles {
+            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+            assert!((b - a).cross(c - a).z > 0.0);
+        }
+        // A larger limit closes the long hole too, never the outer edge (perimeter 24).
+        assert_eq!(mesh.fill_small_holes(100.0), 1);
+        assert_eq!(mesh.topology().boundary_edges, 24);
+        assert!((mesh.area_mm2() - 36.0).abs() < 1e-12);
+        assert_eq!(mesh.fill_small_holes(100.0), 0);
+    }
 
     fn tetrahedron() -> Mesh {
         Mesh {

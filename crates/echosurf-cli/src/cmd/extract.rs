@@ -10,7 +10,7 @@ use echosurf::pipeline::{
 use echosurf::rbf::FitOptions;
 use echosurf::render::{RenderOptions, render_views, write_png};
 use echosurf::segment::InitialBand;
-use echosurf::surface::SurfaceOptions;
+use echosurf::surface::{SheetOptions, SurfaceOptions};
 
 use super::segment::SegmentArgs;
 use crate::progress::BarProgress;
@@ -66,11 +66,18 @@ pub struct Args {
     #[arg(long, default_value_t = pipeline::DEFAULT_ECHO_MARGIN_MM)]
     pub echo_margin: f64,
     /// Output surface: `iso` (the iso-surface, a sheath of two sheets around a thin echo) or `ridge`
-    /// (its proximal sheet moved onto the echo's ridge: closer to the boundary, fewer of its parts).
+    /// (one smooth sheet through the echo's ridge: on the boundary, open where no echo came back).
     #[arg(long, default_value = "iso")]
     pub sheet: String,
+    /// Ridge sheet: distance (mm) over which the sheet averages the ridge points.
+    #[arg(long, default_value_t = SheetOptions::default().smoothing_mm)]
+    pub ridge_smoothing: f64,
+    /// Ridge sheet: how far (mm) the sheet may reach from the nearest ridge point (larger bridges more
+    /// gaps and extrapolates more at the edges).
+    #[arg(long, default_value_t = SheetOptions::default().reach_mm)]
+    pub ridge_reach: f64,
     /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all. Default: 5 for the
-    /// iso sheet, 0.5 for the ridge sheet (a mosaic of small pieces).
+    /// iso sheet, 2 for the ridge sheet.
     #[arg(long)]
     pub min_component_area: Option<f64>,
     /// Seed of the random decimation (and of everything else random).
@@ -218,6 +225,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "iso" => Sheet::Iso,
             "ridge" => Sheet::EchoRidge,
             other => anyhow::bail!("--sheet {other}: expected iso or ridge"),
+        },
+        echo_sheet: SheetOptions {
+            smoothing_mm: args.ridge_smoothing,
+            reach_mm: args.ridge_reach,
+            ..SheetOptions::default()
         },
         min_component_area_mm2: match args.min_component_area {
             Some(a) if !(a.is_finite() && a >= 0.0) => {

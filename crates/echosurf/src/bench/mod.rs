@@ -18,7 +18,7 @@ use glam::{DMat4, DVec3};
 use crate::io::{Calibration, ClipRect, TrackedSequence, resolve_poses};
 use crate::mesh::Mesh;
 use crate::metrics::{CompareOptions, compare_meshes, triangle_mask};
-use crate::pipeline::{ExtractOptions, IsoLevels, Method, VoxelRouteOptions, extract};
+use crate::pipeline::{ExtractOptions, IsoLevels, Method, Sheet, VoxelRouteOptions, extract};
 use crate::progress::NoProgress;
 use crate::simulate::{PhantomKind, SimulationOptions, TrackingErrors, simulate};
 use crate::{Error, Result};
@@ -268,7 +268,15 @@ fn median_spacing(frames: &[DMat4]) -> Option<f64> {
 /// 18 % of normal incidence); the benchmark also scores completeness on them alone.
 pub const STRONG_ECHO_DEG: f64 = 30.0;
 
-/// Runs both routes on a case and scores them.
+/// The routes compared, with the sheet each outputs: the RBF route's iso-surface (the paper's and
+/// `extract`'s default), its echo-ridge sheet (`--sheet ridge`), and the voxel route.
+pub const ROUTES: [(&str, Sheet); 3] = [
+    ("rbf", Sheet::Iso),
+    ("rbf-ridge", Sheet::EchoRidge),
+    ("voxel", Sheet::Iso),
+];
+
+/// Runs every route on a case and scores them.
 pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteResult>> {
     let plane_distance = median_spacing(&case.true_image_to_world)
         .unwrap_or(1.5)
@@ -309,12 +317,17 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
         ..compare.clone()
     });
     let mut results = Vec::new();
-    for (route, method) in [
-        ("rbf", Method::Rbf),
-        ("voxel", Method::Voxel(options.voxel.clone())),
-    ] {
+    for (route, method, sheet) in ROUTES.map(|(route, sheet)| {
+        let method = if route == "voxel" {
+            Method::Voxel(options.voxel.clone())
+        } else {
+            Method::Rbf
+        };
+        (route, method, sheet)
+    }) {
         let extract_options = ExtractOptions {
             method,
+            sheet,
             iso: options.iso.clone(),
             max_samples: options.max_samples,
             seed: options.seed,
@@ -417,8 +430,9 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
 
 /// Accuracy (mean, mm) against time (s), one series per route.
 pub fn accuracy_vs_time_plot(results: &[RouteResult]) -> svg::Plot {
-    let series = ["rbf", "voxel"]
+    let series = ROUTES
         .iter()
+        .map(|(route, _)| route)
         .map(|route| svg::Series {
             name: format!("{route} route"),
             points: results

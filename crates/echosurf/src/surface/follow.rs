@@ -57,7 +57,11 @@ fn cell_corners(cell: Ijk) -> [Ijk; 8] {
     std::array::from_fn(|c| add(cell, corner_offset(c)))
 }
 
+/// Corners on both sides of the level, none undefined (NaN).
 fn straddles(values: &[f64; 8], level: f64) -> bool {
+    if values.iter().any(|v| v.is_nan()) {
+        return false;
+    }
     let high = values.iter().filter(|&&v| v > level).count();
     high != 0 && high != 8
 }
@@ -172,9 +176,11 @@ impl Follower<'_> {
                 for axis in 0..3 {
                     for side in 0..2 {
                         // Corners of the face at `axis` = side.
-                        let high = (0..8)
-                            .filter(|c| (c >> axis) & 1 == side && v[*c] > level)
-                            .count();
+                        let face = (0..8).filter(|c| (c >> axis) & 1 == side);
+                        if face.clone().any(|c| v[c].is_nan()) {
+                            continue;
+                        }
+                        let high = face.filter(|&c| v[c] > level).count();
                         if high == 0 || high == 4 {
                             continue;
                         }

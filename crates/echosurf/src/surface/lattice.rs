@@ -169,7 +169,11 @@ pub(crate) fn evaluate_values(
         .zip(points.par_chunks(EVAL_CHUNK))
         .for_each(|(o, p)| field.values(p, o));
     counter.values += points.len();
-    if let Some(i) = out.iter().position(|v| !v.is_finite()) {
+    let undefined_allowed = field.nan_means_undefined();
+    if let Some(i) = out
+        .iter()
+        .position(|v| !(v.is_finite() || undefined_allowed && v.is_nan()))
+    {
         return Err(Error::Numerical(format!(
             "the scalar field is not finite ({}) at {} mm",
             out[i], points[i]

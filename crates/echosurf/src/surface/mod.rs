@@ -12,6 +12,7 @@ mod lattice;
 mod mc;
 mod ridge;
 mod rmt;
+mod sheet;
 #[cfg(test)]
 mod tests;
 mod trust;
@@ -23,12 +24,19 @@ use crate::mesh::Mesh;
 
 use crate::{Error, Result};
 pub use ridge::{RidgeOptions, proximal_sheet_on_ridge};
+pub use sheet::{SheetOptions, sheet_through_points};
 
 /// A scalar field the surfacer can sample: values and gradients at many points at once (batches let a
 /// fast RBF evaluator amortise its tree walks).
 pub trait ScalarField: Sync {
     fn values(&self, points: &[DVec3], out: &mut [f64]);
     fn values_and_gradients(&self, points: &[DVec3], values: &mut [f64], gradients: &mut [DVec3]);
+    /// Whether NaN marks points where the field is undefined (lattice cells touching one carry no
+    /// surface, so a field confined to a region ends there instead of at a fake crossing). For any
+    /// other field a NaN is a numerical failure and the extraction stops with an error.
+    fn nan_means_undefined(&self) -> bool {
+        false
+    }
 }
 
 /// An analytic field from a closure returning (value, gradient) at a point; for tests and phantoms.

@@ -79,6 +79,10 @@ pub(crate) fn march_tetrahedra(
         let cell = super::lattice::unpack(cell_key);
         let corners: [Ijk; 8] = std::array::from_fn(|c| add(cell, corner_offset(c)));
         let values: [f64; 8] = std::array::from_fn(|c| value_at(corners[c]));
+        if values.iter().any(|v| v.is_nan()) {
+            // The field is undefined at a corner (see `ScalarField::nan_means_undefined`).
+            continue;
+        }
         let high: [bool; 8] = std::array::from_fn(|c| values[c] > level);
         if high.iter().all(|&h| h) || high.iter().all(|&h| !h) {
             continue;

@@ -413,3 +413,74 @@ proptest! {
         prop_assert!(t.is_closed_manifold() || t.triangles == 0, "MC {:?}", t);
     }
 }
+
+/// A field that may be undefined (NaN) somewhere, to check the surfacer's handling of it.
+struct Confined<F> {
+    inner: F,
+    allow_nan: bool,
+}
+
+impl<F: Fn(DVec3) -> (f64, DVec3) + Sync> ScalarField for Confined<F> {
+    fn values(&self, points: &[DVec3], out: &mut [f64]) {
+        for (p, o) in points.iter().zip(out.iter_mut()) {
+            *o = (self.inner)(*p).0;
+        }
+    }
+    fn values_and_gradients(&self, points: &[DVec3], values: &mut [f64], gradients: &mut [DVec3]) {
+        for i in 0..points.len() {
+            (values[i], gradients[i]) = (self.inner)(points[i]);
+        }
+    }
+    fn nan_means_undefined(&self) -> bool {
+        self.allow_nan
+    }
+}
+
+#[test]
+fn an_undefined_region_ends_the_surface_without_a_fake_crossing() {
+    // The sphere's field, undefined for x > 0.5: the surface is the sphere's part with x < 0.5 (less
+    // the cells touching the undefined region), open there, and nothing at the jump to NaN.
+    let radius = 2.0;
+    let ball = sphere(DVec3::ZERO, radius);
+    let confined = move |p: DVec3| {
+        if p.x > 0.5 {
+            (f64::NAN, DVec3::NAN)
+        } else {
+            ball(p)
+        }
+    };
+    for seeds in [Vec::new(), vec![DVec3::new(-radius, 0.0, 0.0)]] {
+        let domain = SurfaceDomain {
+            seeds,
+            ..domain(-4.0, 4.0)
+        };
+        let field = Confined {
+            inner: &confined,
+            allow_nan: true,
+        };
+        let mesh = extract_surfaces(&field, &[0.0], &domain, &SurfaceOptions::default())
+            .unwrap()
+            .remove(0);
+        let topo = mesh.topology();
+        assert_eq!(topo.components, 1);
+        assert!(
+            topo.is_oriented_manifold() && topo.boundary_edges > 0,
+            "{topo:?}"
+        );
+        // Projection onto the sphere moves rim vertices by the chord sagitta (h^2 / 8r = 0.016 mm).
+        for v in &mesh.vertices {
+            assert!(
+                v.x <= 0.5 + 0.02 && (v.length() - radius).abs() < 1e-3,
+                "{v}"
+            );
+        }
+        // The open rim lies within a cell diagonal of the cut.
+        assert!(mesh.vertices.iter().any(|v| v.x > 0.5 - 0.9));
+        // The same NaN from a field that does not declare it is a numerical error.
+        let strict = Confined {
+            inner: &confined,
+            allow_nan: false,
+        };
+        assert!(extract_surfaces(&strict, &[0.0], &domain, &SurfaceOptions::default()).is_err());
+    }
+}

@@ -1,4 +1,5 @@
-//! Region of trust: "is this point within `radius` of any data point?" via a uniform bucket grid.
+//! Region of trust: "is this point within `radius` of any data point?" via a uniform bucket grid, which
+//! also serves neighbour queries ("every point within `radius`", for the oriented-point sheet).
 
 use glam::DVec3;
 
@@ -12,6 +13,8 @@ pub(crate) struct TrustRegion {
     bucket_keys: Vec<u64>,
     bucket_starts: Vec<u32>,
     points: Vec<DVec3>,
+    /// Index of each (sorted) point in the caller's slice.
+    original: Vec<u32>,
 }
 
 const BUCKET_BITS: u32 = 21;
@@ -21,34 +24,38 @@ impl TrustRegion {
     /// `None` when there are no (finite) trust points: no clipping. Bucket coordinates beyond 2^21 are
     /// clamped (they only merge far buckets, which stays correct since points are compared exactly).
     pub fn new(points: &[DVec3], radius_mm: f64) -> Option<TrustRegion> {
-        let finite: Vec<DVec3> = points.iter().copied().filter(|p| p.is_finite()).collect();
+        let finite: Vec<(u32, DVec3)> = points
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.is_finite())
+            .map(|(i, &p)| (i as u32, p))
+            .collect();
         if finite.is_empty() {
             return None;
         }
         let origin_mm = finite
             .iter()
-            .fold(DVec3::splat(f64::INFINITY), |a, p| a.min(*p));
+            .fold(DVec3::splat(f64::INFINITY), |a, (_, p)| a.min(*p));
         let mut region = TrustRegion {
             radius_mm,
             origin_mm,
             bucket_keys: Vec::new(),
             bucket_starts: Vec::new(),
             points: Vec::new(),
+            original: Vec::new(),
         };
-        let mut keyed: Vec<(u64, DVec3)> = finite
+        let mut keyed: Vec<(u64, u32, DVec3)> = finite
             .iter()
-            .map(|&p| (region.key(region.bucket(p)), p))
+            .map(|&(i, p)| (region.key(region.bucket(p)), i, p))
             .collect();
-        keyed.sort_by(|a, b| {
-            a.0.cmp(&b.0)
-                .then(a.1.to_array().partial_cmp(&b.1.to_array()).unwrap())
-        });
-        for (i, (k, p)) in keyed.iter().enumerate() {
+        keyed.sort_by_key(|&(k, i, _)| (k, i));
+        for (i, (k, original, p)) in keyed.iter().enumerate() {
             if region.bucket_keys.last() != Some(k) {
                 region.bucket_keys.push(*k);
                 region.bucket_starts.push(i as u32);
             }
             region.points.push(*p);
+            region.original.push(*original);
         }
         region.bucket_starts.push(keyed.len() as u32);
         Some(region)
@@ -65,11 +72,23 @@ impl TrustRegion {
 
     /// Whether some trust point lies within the radius of `p` (inclusive).
     pub fn contains(&self, p: DVec3) -> bool {
-        let r2 = self.radius_mm * self.radius_mm;
+        let mut found = false;
+        self.visit_within(p, self.radius_mm, &mut |_, _| {
+            found = true;
+            false
+        });
+        found
+    }
+
+    /// Calls `f(index, point)` for every point within `reach_mm` (at most the bucket radius) of `p`,
+    /// `index` being its position in the slice given to [`TrustRegion::new`], in bucket order, until `f`
+    /// returns false.
+    pub fn visit_within(&self, p: DVec3, reach_mm: f64, f: &mut dyn FnMut(usize, DVec3) -> bool) {
+        let r2 = reach_mm.min(self.radius_mm).powi(2);
         let q = (p - self.origin_mm) / self.radius_mm;
         // Entirely below the origin by more than one bucket: nothing can be near.
-        if q.min_element() < -1.0 {
-            return false;
+        if !p.is_finite() || q.min_element() < -1.0 {
+            return;
         }
         let b = self.bucket(p);
         for dz in -1..=1 {
@@ -80,19 +99,17 @@ impl TrustRegion {
                         continue;
                     }
                     if let Ok(i) = self.bucket_keys.binary_search(&self.key(n)) {
-                        let range =
-                            self.bucket_starts[i] as usize..self.bucket_starts[i + 1] as usize;
-                        if self.points[range]
-                            .iter()
-                            .any(|t| t.distance_squared(p) <= r2)
+                        for k in self.bucket_starts[i] as usize..self.bucket_starts[i + 1] as usize
                         {
-                            return true;
+                            let t = self.points[k];
+                            if t.distance_squared(p) <= r2 && !f(self.original[k] as usize, t) {
+                                return;
+                            }
                         }
                     }
                 }
             }
         }
-        false
     }
 }
 
@@ -114,5 +131,20 @@ mod tests {
             assert_eq!(region.contains(q), brute, "{q}");
         }
         assert!(TrustRegion::new(&[], 1.0).is_none());
+        // Neighbour visits: exactly the points within reach, by their index in `pts`.
+        for _ in 0..200 {
+            let q = DVec3::new(rng.random(), rng.random(), rng.random()) * 30.0 - 10.0;
+            let mut seen = Vec::new();
+            region.visit_within(q, 1.2, &mut |i, p| {
+                assert_eq!(p, pts[i]);
+                seen.push(i);
+                true
+            });
+            seen.sort_unstable();
+            let brute: Vec<usize> = (0..pts.len())
+                .filter(|&i| pts[i].distance(q) <= 1.2)
+                .collect();
+            assert_eq!(seen, brute);
+        }
     }
 }
