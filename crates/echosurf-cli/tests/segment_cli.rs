@@ -70,6 +70,27 @@ fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
     }
     assert!(kept > 0.01 && kept < 0.30, "kept fraction {kept}");
     assert!(std::fs::metadata(&preview).unwrap().len() > 1000);
+
+    // --backward-pass keeps a superset of the one-way masks, still a small part of the frames.
+    let back = dir.path().join("masks_back.mha");
+    let mut args = vec!["segment".to_string()];
+    args.extend(spine_args());
+    args.extend(["--auto-init", "--backward-pass", "--out"].map(String::from));
+    args.push(back.display().to_string());
+    let result = echosurf(&args);
+    assert!(
+        result.status.success(),
+        "{}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+    let back = echosurf::io::read_sequence(&back).unwrap();
+    let echosurf::io::PixelData::U8(back_px) = &back.pixels else {
+        panic!("masks must be MET_UCHAR")
+    };
+    assert!(px.iter().zip(back_px).all(|(&a, &b)| a == 0 || b == 255));
+    let kept_back = back_px.iter().filter(|&&x| x == 255).count() as f64 / px.len() as f64;
+    eprintln!("kept one-way {kept:.4}, with the backward pass {kept_back:.4}");
+    assert!(kept_back >= kept && kept_back < 0.30, "{kept_back}");
 }
 
 #[test]

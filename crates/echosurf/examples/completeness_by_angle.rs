@@ -3,7 +3,7 @@
 //! angle between the truth's normal and the nearest sweeping frame's beam, and per facing sign (outward
 //! normal against the beam: the side facing the probe). Environment overrides: `MAXS` (sample budget),
 //! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`, `RIDGE=1` (ridge sheet),
-//! `MINCOMP` (smallest piece kept, mm^2), `CHAIN=1` (chained edgels), `SEED`, and for the ridge sheet
+//! `MINCOMP` (smallest piece kept, mm^2), `CHAIN=1` (chained edgels), `BACK=1` (backward band pass), `SEED`, and for the ridge sheet
 //! `SHEET_H` (smoothing mm), `SHEET_REACH` (mm), `HOLE` (largest hole closed, perimeter mm).
 //! `cargo run --release --example completeness_by_angle -- duck [mesh.ply]`
 use echosurf::metrics::{CompareOptions, compare_meshes, triangle_mask};
@@ -57,6 +57,9 @@ fn main() -> echosurf::Result<()> {
     }
     if env("CHAIN") == Some(1.0) {
         options.segment = echosurf::segment::SegmentOptions::chained();
+    }
+    if env("BACK") == Some(1.0) {
+        options.segment.backward_pass = true;
     }
     if let Some(v) = env("BIN") {
         options.sample_bin_mm = v;

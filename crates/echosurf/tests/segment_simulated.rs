@@ -158,17 +158,21 @@ fn polygon_on_first_frame(
 }
 
 fn segment(sim: &Simulation, poses: &PoseResolution, init: &InitialBand) -> BandMasks {
-    let masks = segment_sequence(
-        &sim.sequence,
-        poses,
-        None,
-        init,
-        &SegmentOptions::chained(),
-        &NoProgress,
-    )
-    .unwrap();
+    segment_with(sim, poses, init, &SegmentOptions::chained())
+}
+
+fn segment_with(
+    sim: &Simulation,
+    poses: &PoseResolution,
+    init: &InitialBand,
+    options: &SegmentOptions,
+) -> BandMasks {
+    let masks = segment_sequence(&sim.sequence, poses, None, init, options, &NoProgress).unwrap();
     if let Ok(path) = std::env::var("SEGMENT_PREVIEW") {
-        let frames = echosurf::segment::default_preview_frames(&masks, 9);
+        let frames = match std::env::var("PREVIEW_FRAMES") {
+            Ok(list) => list.split(',').map(|f| f.parse().unwrap()).collect(),
+            Err(_) => echosurf::segment::default_preview_frames(&masks, 9),
+        };
         echosurf::segment::write_band_preview(
             std::path::Path::new(&path),
             &sim.sequence,
@@ -255,4 +259,32 @@ fn issue_target_sphere_60_degrees() {
         &coverage(&sim, &kind, &poses, &masks),
         &[(45.0, 0.99), (60.0, 0.99)],
     );
+}
+
+/// The duck from a polygon drawn on its first frame (the visible surface +/- 3 mm). Walls that enter
+/// the view later are admitted narrowly on the frame they appear; the backward pass gives them the
+/// full band there. Measured: one-way 98.1 % / 93.5 % (45 / 60 deg), 20.6 % of all pixels; with the
+/// backward pass 98.9 % / 94.7 %, 23.6 %: short of 99 % within 45 degrees. What is missing (45 deg)
+/// lies on frames 5 and 6 (182 of 829 and 41 of 1,989 pixels), which neither pass's band reaches;
+/// from the automatic initial band (wider on the first frame) those frames are complete.
+#[test]
+fn simulated_duck_polygon_init() {
+    let kind = PhantomKind::Duck;
+    let sim = simulated_frames(kind.clone(), 24);
+    let poses = true_poses(&sim, &kind);
+    let init = polygon_on_first_frame(&sim, &kind, &poses);
+    let one_way = coverage(&sim, &kind, &poses, &segment(&sim, &poses, &init));
+    let options = SegmentOptions {
+        backward_pass: true,
+        ..SegmentOptions::chained()
+    };
+    let both = coverage(
+        &sim,
+        &kind,
+        &poses,
+        &segment_with(&sim, &poses, &init, &options),
+    );
+    assert_coverage(&one_way, &[(45.0, 0.975), (60.0, 0.92)]);
+    assert_coverage(&both, &[(45.0, 0.985), (60.0, 0.94)]);
+    assert!(both.near_kept[0].1 > one_way.near_kept[0].1);
 }

@@ -31,6 +31,10 @@ pub struct SegmentArgs {
     /// hysteresis, short chains dropped; smoothing 1 mm unless given.
     #[arg(long)]
     pub chain_edgels: bool,
+    /// After each sweep, propagate the band back from its last frame too and keep the union (beyond
+    /// the paper): an echo entering the view is kept at full width on its first frame.
+    #[arg(long)]
+    pub backward_pass: bool,
     /// Gaussian smoothing before the gradients, in px (default 0.5 mm, 1 mm with --chain-edgels).
     #[arg(long, conflicts_with = "smoothing_mm")]
     pub smoothing_px: Option<f64>,
@@ -98,6 +102,7 @@ impl SegmentArgs {
                 defaults.likelihood_truncation,
             ),
             threshold: self.threshold,
+            backward_pass: self.backward_pass,
             ..defaults
         }
     }

@@ -42,7 +42,15 @@
 //! recovery from a lost band (fewer than `min_edgels_in_band_fraction * M` edgels inside the carried band:
 //! a warning naming the frame, then automatic re-initialisation on that frame); a relative floor on edgel
 //! strength so speckle edges do not fill up the M where a boundary is in view; the clip rectangle (pixels
-//! outside it are never kept and never produce edgels), shrunk to the non-black data region of the frames.
+//! outside it are never kept and never produce edgels), shrunk to the non-black data region of the frames;
+//! a backward pass ([`SegmentOptions::backward_pass`], CLI `--backward-pass`, off by default): after each
+//! sweep the band is propagated back from its last frame as well and the union kept, so an echo that
+//! enters the view gets the full band on its first frame, not only the narrow band of an unconfirmed
+//! edgel. Measured on the simulated duck from a polygon init (chained edgels, 24-frame sweep): visible
+//! surface within 45 degrees of the beam 98.1 % -> 98.9 %, pixels kept 20.6 % -> 23.6 %; in `extract`
+//! (duck, seed 1, iso sheet) the inner wall's probe side within 20-30 degrees of the beam 0.933 -> 0.952
+//! and mean distance to the truth 0.56 -> 0.51 mm, but 19 pieces instead of 13 and +0.2 s, so it is not
+//! the default.
 //!
 //! **Speckle-robust edgels** ([`SegmentOptions::chained`], CLI `--chain-edgels`; off by default, so the
 //! extract pipeline keeps its behaviour). Where a boundary's echo is faint (at the top of the image, or
@@ -158,6 +166,12 @@ pub struct SegmentOptions {
     /// pixels that are non-zero in any of up to 16 sampled frames), so the black margins of a scanner's
     /// frame grab produce no edgels. Default true.
     pub detect_data_region: bool,
+    /// Beyond the paper: after each sweep, propagate the band back from its last frame to its first and
+    /// keep the union of both passes. The forward pass admits an echo that was not in the carried band
+    /// only narrowly on the frame it appears (`C0` gives 11.4 px instead of 29.2 px around its edgels)
+    /// and at full width from the next frame on; going back, that frame inherits the full band.
+    #[serde(default)]
+    pub backward_pass: bool,
 }
 
 impl Default for SegmentOptions {
@@ -181,6 +195,7 @@ impl Default for SegmentOptions {
             auto_shadow_offset: Length::Px(8.0),
             auto_shadow_length: Length::Px(64.0),
             detect_data_region: true,
+            backward_pass: false,
         }
     }
 }
@@ -753,11 +768,13 @@ pub fn segment_sequence(
     let mut done = 0u64;
     let mut seen = BTreeSet::new();
     for sweep in sweeps {
+        let mut sweep_frames = Vec::new();
         for (k, pose_index) in sweep.enumerate() {
             let frame = poses.poses[pose_index].frame_index;
             if !seen.insert(frame) {
                 continue;
             }
+            sweep_frames.push(frame);
             load_grey_crop(sequence, frame, clip, &mut ws.grey);
             {
                 let Workspace {
@@ -804,10 +821,31 @@ pub fn segment_sequence(
             if k > 0 && !needs_auto && !band.iter().any(|&b| b) {
                 warnings.push(format!("frame {frame}: the band is empty"));
             }
-            paste_mask(&band, clip, width, &mut masks[frame]);
+            add_to_mask(&band, clip, width, &mut masks[frame]);
             std::mem::swap(&mut prior, &mut band);
             done += 1;
             progress.advance(done);
+        }
+        if options.backward_pass {
+            // `prior` holds the last frame's band.
+            for &frame in sweep_frames.iter().rev().skip(1) {
+                load_grey_crop(sequence, frame, clip, &mut ws.grey);
+                let Workspace {
+                    grey,
+                    tmp,
+                    smoothed,
+                    ..
+                } = &mut ws;
+                smooth(grey, cw, ch, &propagator.taps, tmp, smoothed);
+                if propagator.step(&mut ws, &prior, &mut band) < propagator.min_edgels_in_band {
+                    // Lost going back (a frame between two structures): carry on from this frame's
+                    // forward band.
+                    band_from_mask(&masks[frame], clip, width, &mut band);
+                } else {
+                    add_to_mask(&band, clip, width, &mut masks[frame]);
+                }
+                std::mem::swap(&mut prior, &mut band);
+            }
         }
     }
     progress.finish();
@@ -928,13 +966,28 @@ fn crop_bool(full: &[bool], width: usize, clip: ClipRect) -> Vec<bool> {
     out
 }
 
-fn paste_mask(band: &[bool], clip: ClipRect, width: usize, mask: &mut [u8]) {
+/// The band a mask keeps, cropped to `clip`.
+fn band_from_mask(mask: &[u8], clip: ClipRect, width: usize, band: &mut Vec<bool>) {
+    let [u0, v0] = clip.origin_px;
+    let [cw, ch] = clip.size_px;
+    band.clear();
+    for r in 0..ch {
+        let row = (v0 + r) * width + u0;
+        band.extend(mask[row..row + cw].iter().map(|&m| m != 0));
+    }
+}
+
+/// Sets to 255 the pixels of `mask` that `band` keeps (a union with what is there: masks start empty,
+/// and the backward pass adds to the forward pass's).
+fn add_to_mask(band: &[bool], clip: ClipRect, width: usize, mask: &mut [u8]) {
     let [u0, v0] = clip.origin_px;
     let [cw, ch] = clip.size_px;
     for r in 0..ch {
         let dst = &mut mask[(v0 + r) * width + u0..(v0 + r) * width + u0 + cw];
         for (d, &b) in dst.iter_mut().zip(&band[r * cw..(r + 1) * cw]) {
-            *d = if b { 255 } else { 0 };
+            if b {
+                *d = 255;
+            }
         }
     }
 }

@@ -472,3 +472,68 @@ fn black_margins_of_the_frame_grab_are_not_data() {
     let b = s.boundary_row(1, u as f64).round() as usize;
     assert_eq!(masks.masks[1][b * w + u], 255);
 }
+
+#[test]
+fn backward_pass_gives_an_echo_the_full_band_on_the_frame_it_enters() {
+    // A polygon around the left half of the boundary only: going forward, the right half's edgels lie
+    // outside the initial band on frame 0 and get the narrow outside radius (11.4 px); from frame 1 on
+    // (carried inside that narrow band) the band is whole. Going back, frame 0 inherits the whole band.
+    let s = synthetic_sweep(320, 240, 8, 0.15, 2.0, 11);
+    let half = s.sequence.width as f64 / 2.0;
+    let full = polygon_around_first_boundary(&s, 15.0);
+    let left: Vec<[f64; 2]> = full.into_iter().filter(|p| p[0] <= half).collect();
+    let run = |backward_pass: bool| {
+        segment_sequence(
+            &s.sequence,
+            &s.poses,
+            None,
+            &InitialBand::Polygon(left.clone()),
+            &SegmentOptions {
+                backward_pass,
+                ..SegmentOptions::default()
+            },
+            &NoProgress,
+        )
+        .unwrap()
+    };
+    let (forward, both) = (run(false), run(true));
+    // Share of the pixels 12-20 px from the boundary in the right half that a frame keeps: beyond the
+    // narrow radius, inside the full one (29.2 px).
+    let w = s.sequence.width;
+    let right_flank = |masks: &BandMasks, f: usize| {
+        let (mut near, mut kept) = (0usize, 0usize);
+        for u in (w / 2 + 20)..(w - 5) {
+            let b = s.boundary_row(f, u as f64).round() as usize;
+            for v in b.saturating_sub(40)..(b + 40).min(s.sequence.height) {
+                let d = s.distance_to_boundary_px(f, u, v, 41.0);
+                if (12.0..=20.0).contains(&d) {
+                    near += 1;
+                    kept += (masks.masks[f][v * w + u] != 0) as usize;
+                }
+            }
+        }
+        kept as f64 / near as f64
+    };
+    assert!(
+        right_flank(&forward, 0) < 0.5,
+        "{}",
+        right_flank(&forward, 0)
+    );
+    assert!(right_flank(&both, 0) > 0.99, "{}", right_flank(&both, 0));
+    assert!(right_flank(&forward, 1) > 0.99);
+    // The backward pass only adds to the forward bands.
+    for f in 0..8 {
+        assert!(
+            forward.masks[f]
+                .iter()
+                .zip(&both.masks[f])
+                .all(|(&a, &b)| a == 0 || b != 0),
+            "frame {f}"
+        );
+    }
+    let (near_kept, kept_all) = coverage(&s, &both, 0..8, 1.0);
+    assert!(
+        near_kept >= 0.99 && kept_all <= 0.30,
+        "{near_kept} {kept_all}"
+    );
+}
