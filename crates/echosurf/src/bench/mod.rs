@@ -240,6 +240,10 @@ pub struct RouteResult {
     pub iso: f64,
     pub triangles: usize,
     pub components: usize,
+    /// Connected patches (of at least [`MIN_PATCH_AREA_MM2`]) of the truth within [`STRONG_ECHO_DEG`]
+    /// of a sweeping frame's beam: the pieces a surface of the echoing walls can at best come in (the
+    /// parts of a wall between them face the beam too steeply to echo). Same for every route of a case.
+    pub truth_patches_strong_echo: usize,
     /// MESH -> TRUTH (mm); NaN when the route produced no surface.
     pub accuracy_mean_mm: f64,
     pub accuracy_p95_mm: f64,
@@ -267,6 +271,23 @@ fn median_spacing(frames: &[DMat4]) -> Option<f64> {
 /// Walls within this angle of the beam return a strong specular echo in the simulator (cos^12: at least
 /// 18 % of normal incidence); the benchmark also scores completeness on them alone.
 pub const STRONG_ECHO_DEG: f64 = 30.0;
+
+/// Truth patches smaller than this (mm^2) are not counted in [`RouteResult::truth_patches_strong_echo`]
+/// (slivers where a wall's angle to the beam hovers around the limit); the ridge sheet's default
+/// smallest piece.
+pub const MIN_PATCH_AREA_MM2: f64 = crate::pipeline::DEFAULT_RIDGE_MIN_COMPONENT_AREA_MM2;
+
+/// Connected patches of `mesh`'s triangles flagged in `mask`, of at least `min_area_mm2` each.
+pub fn masked_patches(mesh: &Mesh, mask: &[bool], min_area_mm2: f64) -> usize {
+    let mut patches = mesh.clone();
+    patches.retain_triangles(mask);
+    patches.remove_small_components(min_area_mm2);
+    if patches.is_empty() {
+        0
+    } else {
+        patches.topology().components
+    }
+}
 
 /// The routes compared, with the sheet each outputs: the RBF route's iso-surface (the paper's and
 /// `extract`'s default), its echo-ridge sheet (`--sheet ridge`), and the voxel route.
@@ -305,6 +326,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
         plane_distance,
         STRONG_ECHO_DEG,
     );
+    let truth_patches = masked_patches(&case.truth, &strong_mask, MIN_PATCH_AREA_MM2);
     let compare = CompareOptions {
         samples_per_mm2: if options.quick { 2.0 } else { 5.0 },
         min_samples: if options.quick { 2_000 } else { 20_000 },
@@ -348,6 +370,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
             iso: f64::NAN,
             triangles: 0,
             components: 0,
+            truth_patches_strong_echo: truth_patches,
             accuracy_mean_mm: f64::NAN,
             accuracy_p95_mm: f64::NAN,
             completeness_1mm: 0.0,
@@ -400,8 +423,8 @@ fn mb(bytes: Option<u64>) -> String {
 /// The results as a markdown table, one row per case and route.
 pub fn markdown_table(results: &[RouteResult]) -> String {
     let mut out = String::from(
-        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | completeness, <= 30 deg (1 mm) | components | triangles | time (s) | peak extra memory (MB) |\n\
-         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | completeness, <= 30 deg (1 mm) | components | truth patches, <= 30 deg | triangles | time (s) | peak extra memory (MB) |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in results {
         let note = r
@@ -410,7 +433,7 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
             .map(|e| format!(" ({e})"))
             .unwrap_or_default();
         out.push_str(&format!(
-            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {:.1} % | {} | {} | {:.2} | {} |\n",
+            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {:.1} % | {} | {} | {} | {:.2} | {} |\n",
             r.case,
             r.route,
             note,
@@ -420,6 +443,7 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
             100.0 * r.completeness_1mm,
             100.0 * r.completeness_strong_echo_1mm,
             r.components,
+            r.truth_patches_strong_echo,
             r.triangles,
             r.seconds,
             mb(r.peak_extra_bytes),
@@ -544,5 +568,8 @@ mod tests {
             c.x.abs() > 9.5
         });
         assert!(!side_kept);
+        // The frame sweeps a strip over the top cap and one under the bottom cap: two patches.
+        assert_eq!(masked_patches(&sphere, &mask, 0.5), 2);
+        assert_eq!(masked_patches(&sphere, &mask, 1e6), 0);
     }
 }
