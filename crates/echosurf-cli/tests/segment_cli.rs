@@ -34,31 +34,39 @@ fn echosurf(args: &[String]) -> std::process::Output {
         .unwrap()
 }
 
-#[test]
-fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("masks.mha");
-    let preview = dir.path().join("overlay.png");
+/// Runs `echosurf segment` on the spine sweep with `--auto-init`, `extra` options and `--out out`;
+/// returns the masks' pixels (MET_UCHAR).
+fn segment_spine(out: &Path, extra: &[String]) -> Vec<u8> {
     let mut args = vec!["segment".to_string()];
     args.extend(spine_args());
     args.extend(["--auto-init", "--out"].map(String::from));
     args.push(out.display().to_string());
-    args.push("--preview".into());
-    args.push(preview.display().to_string());
+    args.extend_from_slice(extra);
     let result = echosurf(&args);
     assert!(
         result.status.success(),
         "{}",
         String::from_utf8_lossy(&result.stderr)
     );
-    let masks = echosurf::io::read_sequence(&out).unwrap();
+    let masks = echosurf::io::read_sequence(out).unwrap();
     assert_eq!(
         (masks.width, masks.height, masks.frames.len()),
         (820, 616, 21)
     );
-    let echosurf::io::PixelData::U8(px) = &masks.pixels else {
-        panic!("masks must be MET_UCHAR")
-    };
+    match masks.pixels {
+        echosurf::io::PixelData::U8(px) => px,
+        _ => panic!("masks must be MET_UCHAR"),
+    }
+}
+
+#[test]
+fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
+    let dir = tempfile::tempdir().unwrap();
+    let preview = dir.path().join("overlay.png");
+    let px = segment_spine(
+        &dir.path().join("masks.mha"),
+        &["--preview".into(), preview.display().to_string()],
+    );
     assert!(px.iter().all(|&x| x == 0 || x == 255));
     let kept = px.iter().filter(|&&x| x == 255).count() as f64 / px.len() as f64;
     // Every frame has a band, and the band is a small part of the frame.
@@ -72,22 +80,11 @@ fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
     assert!(std::fs::metadata(&preview).unwrap().len() > 1000);
 
     // --backward-pass keeps a superset of the one-way masks, still a small part of the frames.
-    let back = dir.path().join("masks_back.mha");
-    let mut args = vec!["segment".to_string()];
-    args.extend(spine_args());
-    args.extend(["--auto-init", "--backward-pass", "--out"].map(String::from));
-    args.push(back.display().to_string());
-    let result = echosurf(&args);
-    assert!(
-        result.status.success(),
-        "{}",
-        String::from_utf8_lossy(&result.stderr)
+    let back_px = segment_spine(
+        &dir.path().join("masks_back.mha"),
+        &["--backward-pass".into()],
     );
-    let back = echosurf::io::read_sequence(&back).unwrap();
-    let echosurf::io::PixelData::U8(back_px) = &back.pixels else {
-        panic!("masks must be MET_UCHAR")
-    };
-    assert!(px.iter().zip(back_px).all(|(&a, &b)| a == 0 || b == 255));
+    assert!(px.iter().zip(&back_px).all(|(&a, &b)| a == 0 || b == 255));
     let kept_back = back_px.iter().filter(|&&x| x == 255).count() as f64 / px.len() as f64;
     eprintln!("kept one-way {kept:.4}, with the backward pass {kept_back:.4}");
     assert!(kept_back >= kept && kept_back < 0.30, "{kept_back}");

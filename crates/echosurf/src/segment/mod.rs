@@ -775,16 +775,7 @@ pub fn segment_sequence(
                 continue;
             }
             sweep_frames.push(frame);
-            load_grey_crop(sequence, frame, clip, &mut ws.grey);
-            {
-                let Workspace {
-                    grey,
-                    tmp,
-                    smoothed,
-                    ..
-                } = &mut ws;
-                smooth(grey, cw, ch, &propagator.taps, tmp, smoothed);
-            }
+            load_smoothed(&mut ws, sequence, frame, clip, &propagator.taps);
             let mut needs_auto = false;
             if k == 0 {
                 ws.reference_strength = 0.0;
@@ -829,14 +820,7 @@ pub fn segment_sequence(
         if options.backward_pass {
             // `prior` holds the last frame's band.
             for &frame in sweep_frames.iter().rev().skip(1) {
-                load_grey_crop(sequence, frame, clip, &mut ws.grey);
-                let Workspace {
-                    grey,
-                    tmp,
-                    smoothed,
-                    ..
-                } = &mut ws;
-                smooth(grey, cw, ch, &propagator.taps, tmp, smoothed);
+                load_smoothed(&mut ws, sequence, frame, clip, &propagator.taps);
                 if propagator.step(&mut ws, &prior, &mut band) < propagator.min_edgels_in_band {
                     // Lost going back (a frame between two structures): carry on from this frame's
                     // forward band.
@@ -964,6 +948,24 @@ fn crop_bool(full: &[bool], width: usize, clip: ClipRect) -> Vec<bool> {
         out.extend_from_slice(&full[v * width + u0..v * width + u0 + cw]);
     }
     out
+}
+
+/// Loads frame `frame` (cropped to `clip`) into `ws.grey` and its smoothed copy into `ws.smoothed`.
+fn load_smoothed(
+    ws: &mut Workspace,
+    sequence: &TrackedSequence,
+    frame: usize,
+    clip: ClipRect,
+    taps: &[f32],
+) {
+    load_grey_crop(sequence, frame, clip, &mut ws.grey);
+    let Workspace {
+        grey,
+        tmp,
+        smoothed,
+        ..
+    } = ws;
+    smooth(grey, clip.size_px[0], clip.size_px[1], taps, tmp, smoothed);
 }
 
 /// The band a mask keeps, cropped to `clip`.
