@@ -1,23 +1,10 @@
 //! `echosurf inspect` end to end on the real PLUS data.
 
-use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-fn real(name: &str) -> PathBuf {
-    let beside = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/data/real/"
-    ));
-    if beside.is_dir() {
-        return beside.join(name);
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .map(|a| a.join("shared/data/real"))
-        .find(|p| p.is_dir())
-        .unwrap_or_else(|| beside.to_path_buf())
-        .join(name)
-}
+#[path = "../../echosurf/tests/common/real_data.rs"]
+mod real_data;
+use real_data::real;
 
 const NN_MEAN: &str = "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml";
 

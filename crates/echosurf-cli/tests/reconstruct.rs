@@ -1,23 +1,10 @@
 //! `echosurf reconstruct` end to end on the real spine sweep.
 
-use std::path::{Path, PathBuf};
 use std::process::Command;
 
-fn real(name: &str) -> PathBuf {
-    let beside = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/data/real/"
-    ));
-    if beside.is_dir() {
-        return beside.join(name);
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .map(|a| a.join("shared/data/real"))
-        .find(|p| p.is_dir())
-        .unwrap_or_else(|| beside.to_path_buf())
-        .join(name)
-}
+#[path = "../../echosurf/tests/common/real_data.rs"]
+mod real_data;
+use real_data::real;
 
 #[test]
 fn reconstructs_plus_reference_and_refuses_oversized_grids() {

@@ -1,21 +1,11 @@
 //! `echosurf segment` and `echosurf sample` end to end on the real PLUS spine sweep.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
-/// Real data beside the repository (CI, /work/main); from a helper worktree (/work/wt/NAME) it is one
-/// level further up.
-fn real(name: &str) -> PathBuf {
-    let beside = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/data/real/"
-    ));
-    let worktree = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../../shared/data/real/"
-    ));
-    if beside.exists() { beside } else { worktree }.join(name)
-}
+#[path = "../../echosurf/tests/common/real_data.rs"]
+mod real_data;
+use real_data::real;
 
 fn spine_args() -> Vec<String> {
     vec![

@@ -1,25 +1,11 @@
 //! Reading the real PLUS sweeps (zlib MetaImage and gzip NRRD) and resolving their poses.
 
-use std::path::{Path, PathBuf};
-
 use criterion::{Criterion, criterion_group, criterion_main};
 use echosurf::io::{self, ReferenceChoice};
 
-fn real(name: &str) -> PathBuf {
-    let beside = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/data/real/"
-    ));
-    if beside.is_dir() {
-        return beside.join(name);
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .map(|a| a.join("shared/data/real"))
-        .find(|p| p.is_dir())
-        .unwrap_or_else(|| beside.to_path_buf())
-        .join(name)
-}
+#[path = "../tests/common/real_data.rs"]
+mod real_data;
+use real_data::real;
 
 fn bench_read(c: &mut Criterion) {
     let mut group = c.benchmark_group("io");

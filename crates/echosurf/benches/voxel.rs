@@ -1,28 +1,14 @@
 //! Voxel reconstruction of the real spine sweep (21 frames of 820x616 at 0.5 mm) as PLUS does it:
 //! nearest-neighbour and trilinear splatting, with and without STICK hole filling.
 
-use std::path::{Path, PathBuf};
-
 use criterion::{Criterion, criterion_group, criterion_main};
 use echosurf::io::{self, ReferenceChoice};
 use echosurf::progress::NoProgress;
 use echosurf::voxel::{HoleFilling, Interpolation, options_from_config_xml, reconstruct_volume};
 
-fn real(name: &str) -> PathBuf {
-    let beside = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/data/real/"
-    ));
-    if beside.is_dir() {
-        return beside.join(name);
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .map(|a| a.join("shared/data/real"))
-        .find(|p| p.is_dir())
-        .unwrap_or_else(|| beside.to_path_buf())
-        .join(name)
-}
+#[path = "../tests/common/real_data.rs"]
+mod real_data;
+use real_data::real;
 
 fn bench_reconstruct(c: &mut Criterion) {
     let seq_path = real("SpinePhantomFreehand.igs.mha");

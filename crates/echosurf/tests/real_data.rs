@@ -10,23 +10,9 @@ use echosurf::io::{
 use echosurf::{Error, FormatProblem};
 use glam::DVec3;
 
-/// `shared/data/real` beside the repository (CI layout), or in the nearest ancestor folder that has it
-/// (helper worktrees live deeper than the main checkout).
-fn real(name: &str) -> PathBuf {
-    let beside = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/data/real/"
-    ));
-    if beside.is_dir() {
-        return beside.join(name);
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .map(|a| a.join("shared/data/real"))
-        .find(|p| p.is_dir())
-        .unwrap_or_else(|| beside.to_path_buf())
-        .join(name)
-}
+#[path = "common/real_data.rs"]
+mod real_data;
+use real_data::real;
 
 const SEQUENCES: &[(&str, usize, usize, usize)] = &[
     ("SpinePhantomFreehand.igs.mha", 820, 616, 21),

@@ -1,8 +1,6 @@
 //! Against PLUS itself: the spine sweep reconstructed with PLUS's NN_MEAN test configuration must
 //! reproduce PLUS's regression reference volume (vtkVolumeReconstructorTestNNMEANvolumeRef.mha).
 
-use std::path::{Path, PathBuf};
-
 use echosurf::io::{ReferenceChoice, read_calibration, read_sequence, resolve_poses};
 use echosurf::progress::NoProgress;
 use echosurf::voxel::{
@@ -10,23 +8,9 @@ use echosurf::voxel::{
     reconstruct_volume,
 };
 
-/// `shared/data/real` beside the repository (CI layout), or in the nearest ancestor folder that
-/// has it (helper worktrees live deeper than the main checkout).
-fn real(name: &str) -> PathBuf {
-    let beside = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/data/real/"
-    ));
-    if beside.is_dir() {
-        return beside.join(name);
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .map(|a| a.join("shared/data/real"))
-        .find(|p| p.is_dir())
-        .unwrap_or_else(|| beside.to_path_buf())
-        .join(name)
-}
+#[path = "common/real_data.rs"]
+mod real_data;
+use real_data::real;
 
 struct Agreement {
     total: usize,

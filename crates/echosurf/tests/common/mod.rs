@@ -3,7 +3,7 @@
 #![allow(dead_code)]
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::OnceLock;
 
 use echosurf::io::{self, PixelData, TrackedSequence};
@@ -12,26 +12,8 @@ use glam::DVec3;
 
 pub mod corpus;
 
-/// `shared/data/real` beside the repository (CI layout), or in the nearest ancestor folder that has it
-/// (helper worktrees live deeper than the main checkout).
-pub fn real_dir() -> PathBuf {
-    let beside = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/data/real/"
-    ));
-    if beside.is_dir() {
-        return beside.to_path_buf();
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .map(|a| a.join("shared/data/real"))
-        .find(|p| p.is_dir())
-        .unwrap_or_else(|| beside.to_path_buf())
-}
-
-pub fn real(name: &str) -> PathBuf {
-    real_dir().join(name)
-}
+pub mod real_data;
+pub use real_data::real;
 
 /// Width and height of the cropped frames of [`small_sequence`].
 pub const SMALL_W: usize = 24;

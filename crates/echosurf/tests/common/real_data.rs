@@ -1,0 +1,25 @@
+//! Where the real PLUS recordings are: `shared/data/real` beside the repository (CI layout), or in the
+//! nearest ancestor folder that has it (helper worktrees live deeper than the main checkout). One file
+//! for every test and bench of both crates (`#[path]`-included where `tests/common` is not a module).
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+
+pub fn real_dir() -> PathBuf {
+    let beside = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/data/real/"
+    ));
+    if beside.is_dir() {
+        return beside.to_path_buf();
+    }
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .ancestors()
+        .map(|a| a.join("shared/data/real"))
+        .find(|p| p.is_dir())
+        .unwrap_or_else(|| beside.to_path_buf())
+}
+
+pub fn real(name: &str) -> PathBuf {
+    real_dir().join(name)
+}
