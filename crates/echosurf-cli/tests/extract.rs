@@ -256,4 +256,13 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
     );
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--sheet middle"));
+    let bad = extract(
+        &seq,
+        &config,
+        &dir.path().join("bad.ply"),
+        &["--sheet", "ridge", "--ridge-reach", "0"],
+    );
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--ridge-reach must be a positive"));
+    assert!(!dir.path().join("bad.ply").exists());
 }

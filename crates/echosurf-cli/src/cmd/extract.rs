@@ -191,6 +191,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.resolution.is_finite() && args.resolution > 0.0) {
         anyhow::bail!("--resolution must be a positive number of mm");
     }
+    for (flag, mm) in [
+        ("--ridge-smoothing", args.ridge_smoothing),
+        ("--ridge-reach", args.ridge_reach),
+    ] {
+        if !(mm.is_finite() && mm > 0.0) {
+            anyhow::bail!("{flag} must be a positive number of mm, got {mm}");
+        }
+    }
     let sequence = io::read_sequence(&seg.sequence)?;
     let calibration = io::read_calibration(&seg.config)?;
     let init = match &seg.init {
