@@ -21,6 +21,24 @@ fn find_root(parent: &mut [usize], mut i: usize) -> usize {
 }
 
 impl Mesh {
+    /// All of `meshes` in one mesh (vertices renumbered); normals only if every part has them.
+    pub fn merged<'a>(meshes: impl IntoIterator<Item = &'a Mesh>) -> Mesh {
+        let mut out = Mesh::default();
+        let mut all_normals = true;
+        for m in meshes {
+            let base = out.vertices.len() as u32;
+            out.vertices.extend(&m.vertices);
+            all_normals &= m.normals.len() == m.vertices.len();
+            out.normals.extend(&m.normals);
+            out.triangles
+                .extend(m.triangles.iter().map(|t| t.map(|i| i + base)));
+        }
+        if !all_normals {
+            out.normals.clear();
+        }
+        out
+    }
+
     pub fn is_empty(&self) -> bool {
         self.triangles.is_empty()
     }

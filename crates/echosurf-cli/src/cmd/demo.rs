@@ -22,10 +22,15 @@ pub struct Args {
     /// Seed of the simulation (same seed, same bytes).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Output surface, as for `extract`: `iso` (the paper's iso-surface) or `ridge` (one sheet on each
+    /// echo's ridge).
+    #[arg(long, default_value = "iso")]
+    pub sheet: String,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let start = Instant::now();
+    let sheet = super::extract::parse_sheet(&args.sheet)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let sim_options = SimulationOptions {
@@ -40,6 +45,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!("extracting the surface ...");
     let options = ExtractOptions {
         seed: args.seed,
+        sheet,
         ..ExtractOptions::default()
     };
     let output = pipeline::extract(
@@ -62,15 +68,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     // All true walls in one mesh (the duck's outer and inner wall): each extracted sheet is scored
     // against the wall it belongs to.
-    let mut truth = echosurf::mesh::Mesh::default();
-    for (_, m) in &sim.truth {
-        let base = truth.vertices.len() as u32;
-        truth.vertices.extend(&m.vertices);
-        truth.normals.extend(&m.normals);
-        truth
-            .triangles
-            .extend(m.triangles.iter().map(|t| t.map(|i| i + base)));
-    }
+    let truth = echosurf::simulate::merged_truth(&sim.truth);
     if truth.is_empty() {
         anyhow::bail!("the simulation has no truth surface");
     }
@@ -113,7 +111,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         r.levels.map(|l| l.boundary).unwrap_or(f32::NAN)
     );
     println!(
-        "  surface: {} triangles, {} component(s)",
+        "  surface ({} sheet): {} triangles, {} component(s)",
+        args.sheet.to_ascii_lowercase(),
         surface.mesh.triangles.len(),
         comparison.mesh_topology.components
     );

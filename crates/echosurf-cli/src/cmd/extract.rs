@@ -176,6 +176,15 @@ pub fn memory_budget_bytes(mb: Option<f64>) -> anyhow::Result<u64> {
     }
 }
 
+/// `--sheet iso|ridge`.
+pub(crate) fn parse_sheet(text: &str) -> anyhow::Result<Sheet> {
+    Ok(match text.to_ascii_lowercase().as_str() {
+        "iso" => Sheet::Iso,
+        "ridge" => Sheet::EchoRidge,
+        other => anyhow::bail!("--sheet {other}: expected iso or ridge"),
+    })
+}
+
 pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
     Ok(match text.to_ascii_lowercase().as_str() {
         "auto" => ReferenceChoice::Auto,
@@ -229,11 +238,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         trust_distance_mm: args.trust_distance,
         sample_bin_mm: args.sample_bin,
         echo_margin_mm: echo_margin(args.echo_margin)?,
-        sheet: match args.sheet.to_ascii_lowercase().as_str() {
-            "iso" => Sheet::Iso,
-            "ridge" => Sheet::EchoRidge,
-            other => anyhow::bail!("--sheet {other}: expected iso or ridge"),
-        },
+        sheet: parse_sheet(&args.sheet)?,
         echo_sheet: SheetOptions {
             smoothing_mm: args.ridge_smoothing,
             reach_mm: args.ridge_reach,

@@ -142,7 +142,7 @@ pub fn simulated_case(
         name,
         sequence: sim.sequence,
         calibration: sim.calibration_written,
-        truth: merge_meshes(sim.truth.iter().map(|(_, m)| m)),
+        truth: crate::simulate::merged_truth(&sim.truth),
         true_image_to_world: sim.true_image_to_world,
     })
 }
@@ -168,24 +168,6 @@ pub fn user_case(
         truth,
         true_image_to_world,
     })
-}
-
-/// Concatenates meshes (normals kept only if every mesh has them).
-pub fn merge_meshes<'a>(meshes: impl Iterator<Item = &'a Mesh>) -> Mesh {
-    let mut out = Mesh::default();
-    let mut all_normals = true;
-    for m in meshes {
-        let base = out.vertices.len() as u32;
-        out.vertices.extend(&m.vertices);
-        all_normals &= m.normals.len() == m.vertices.len();
-        out.normals.extend(&m.normals);
-        out.triangles
-            .extend(m.triangles.iter().map(|t| t.map(|i| i + base)));
-    }
-    if !all_normals {
-        out.normals.clear();
-    }
-    out
 }
 
 /// Swept, beam-facing truth triangles (see the module docs). The beam runs along the image's +v axis.
@@ -388,7 +370,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
                     .zip(baseline)
                     .map(|(p, b)| p.saturating_sub(b));
                 result.iso = output.surfaces.first().map_or(f64::NAN, |s| s.level);
-                let mesh = merge_meshes(output.surfaces.iter().map(|s| &s.mesh));
+                let mesh = Mesh::merged(output.surfaces.iter().map(|s| &s.mesh));
                 result.triangles = mesh.triangles.len();
                 if mesh.is_empty() {
                     result.error = Some("no surface".into());

@@ -66,20 +66,7 @@ pub fn truth_meshes(
 
 /// All truth surfaces in one mesh.
 pub fn merged_truth(truth: &[(String, Mesh)]) -> Mesh {
-    let mut all = Mesh::default();
-    let with_normals = truth
-        .iter()
-        .all(|(_, m)| m.normals.len() == m.vertices.len());
-    for (_, m) in truth {
-        let offset = all.vertices.len() as u32;
-        all.vertices.extend_from_slice(&m.vertices);
-        if with_normals {
-            all.normals.extend_from_slice(&m.normals);
-        }
-        all.triangles
-            .extend(m.triangles.iter().map(|t| t.map(|i| i + offset)));
-    }
-    all
+    Mesh::merged(truth.iter().map(|(_, m)| m))
 }
 
 /// Writes `NAME.mha`, `NAME_config.xml`, `truth.ply` (+ `truth_NAME.ply` per surface when there are
