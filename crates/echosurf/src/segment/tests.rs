@@ -537,3 +537,43 @@ fn backward_pass_gives_an_echo_the_full_band_on_the_frame_it_enters() {
         "{near_kept} {kept_all}"
     );
 }
+
+#[test]
+fn a_later_sweep_starts_from_the_given_band_and_the_carried_one() {
+    // One pass whose boundary drifts 3 px per frame, with the probe jumping 10 mm after frame 5 (a
+    // sweep break). The polygon drawn around frame 0's boundary (+/- 15 px) no longer holds frame 6's
+    // boundary, which has moved 18 px; the band carried from frame 5 does, so frame 6 keeps its
+    // boundary at full width (29 px), not at the narrow width of an unconfirmed echo (11.4 px).
+    let mut s = synthetic_sweep(320, 240, 10, 0.15, 3.0, 13);
+    for p in &mut s.poses.poses[6..] {
+        p.image_to_world =
+            DMat4::from_translation(glam::DVec3::new(10.0, 0.0, 0.0)) * p.image_to_world;
+    }
+    let masks = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Polygon(polygon_around_first_boundary(&s, 15.0)),
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    assert_eq!(masks.initialised_frames, vec![0, 6], "{:?}", masks.warnings);
+    let w = s.sequence.width;
+    let (mut near, mut kept) = (0usize, 0usize);
+    for u in 10..w - 10 {
+        let b = s.boundary_row(6, u as f64).round() as usize;
+        for v in b.saturating_sub(40)..(b + 40).min(s.sequence.height) {
+            if (12.0..=20.0).contains(&s.distance_to_boundary_px(6, u, v, 41.0)) {
+                near += 1;
+                kept += (masks.masks[6][v * w + u] != 0) as usize;
+            }
+        }
+    }
+    assert!(kept as f64 > 0.99 * near as f64, "{kept} of {near}");
+    let (near_kept, kept_all) = coverage(&s, &masks, 0..10, 1.0);
+    assert!(
+        near_kept >= 0.99 && kept_all <= 0.30,
+        "{near_kept} {kept_all}"
+    );
+}
