@@ -191,9 +191,10 @@ fn segment_with(
 /// sphere, mean grey at the boundary / 1-3 mm inside / 1-3 mm above in water is 127 / 26 / 5 at 0-10
 /// degrees, 50 / 24 / 15 at 30-40, 28 / 25 / 16 at 40-50 and 25 / 25 / 16 at 50-60 degrees: from 40
 /// degrees on, the surface is only the step from water to the object's own speckle. With chained edgels
-/// the band follows the boundary into that range but not always to 60 degrees, so these tests assert at
-/// least 99 % within 45 degrees and the measured level (minus a margin) within 60 degrees;
-/// `issue_target_sphere_60_degrees` keeps the issue's 60-degree target as an executable, ignored target.
+/// the band follows the sphere into that range (>= 99 % within 60 degrees), but not all of the duck's
+/// steep walls, so the duck's tests assert at least 99 % within 45 degrees and the measured level (minus
+/// a margin) within 60 degrees; `issue_target_duck_60_degrees` keeps the 60-degree target as an
+/// executable, ignored target.
 fn assert_coverage(c: &Coverage, min_near_kept: &[(f64, f64)]) {
     assert!(c.kept_all <= 0.30, "kept {} of all pixels", c.kept_all);
     for (&(angle, kept), &(angle_min, min)) in c.near_kept.iter().zip(min_near_kept) {
@@ -206,8 +207,9 @@ fn assert_coverage(c: &Coverage, min_near_kept: &[(f64, f64)]) {
     }
 }
 
-/// Measured with `SegmentOptions::chained()`: 100 % (45 deg) / 98.8 % (60 deg) near the surface, 24.6 % of all pixels
-/// (before edgel chaining and 1 mm smoothing: 100 % / 95.9 %, 50.8 %).
+/// Measured with `SegmentOptions::chained()`: 100 % (45 deg) / 99.7 % (60 deg) near the surface, 26.5 %
+/// of all pixels (chains linked over 3 rows instead of 4: 100 % / 98.8 %, 24.6 %; the paper's M largest
+/// edgels with 0.5 mm smoothing: 100 % / 95.9 %, 50.8 %).
 #[test]
 fn simulated_sphere_auto_init() {
     let kind = PhantomKind::Sphere;
@@ -216,11 +218,11 @@ fn simulated_sphere_auto_init() {
     let masks = segment(&sim, &poses, &InitialBand::Auto);
     assert_coverage(
         &coverage(&sim, &kind, &poses, &masks),
-        &[(45.0, 0.99), (60.0, 0.98)],
+        &[(45.0, 0.99), (60.0, 0.99)],
     );
 }
 
-/// Measured: 100 % / 98.8 %, 23.7 % of all pixels.
+/// Measured: 100 % / 99.7 %, 26.0 % of all pixels.
 #[test]
 fn simulated_sphere_polygon_init() {
     let kind = PhantomKind::Sphere;
@@ -230,7 +232,7 @@ fn simulated_sphere_polygon_init() {
     let masks = segment(&sim, &poses, &init);
     assert_coverage(
         &coverage(&sim, &kind, &poses, &masks),
-        &[(45.0, 0.99), (60.0, 0.98)],
+        &[(45.0, 0.99), (60.0, 0.99)],
     );
 }
 
@@ -247,12 +249,14 @@ fn simulated_duck_auto_init() {
     );
 }
 
-/// The issue's target as stated (>= 99 % within 60 degrees), not met: see `assert_coverage`.
+/// The 60-degree target on the duck, not met: 97.1 % measured. What is missing lies on four frames (5,
+/// 12, 14 and 18: 360, 107, 172 and 140 pixels), on walls between 45 and 60 degrees from the beam with
+/// no edgel near them (frame 18 shows no wall within 45 degrees at all). See `assert_coverage`.
 #[test]
-#[ignore = "not met: beyond ~40 degrees the simulated boundary has no echo (cos^12); 98.8 % measured"]
-fn issue_target_sphere_60_degrees() {
-    let kind = PhantomKind::Sphere;
-    let sim = simulated(kind.clone());
+#[ignore = "not met: the duck's steep walls (45-60 degrees) return no echo (cos^12); 97.1 % measured"]
+fn issue_target_duck_60_degrees() {
+    let kind = PhantomKind::Duck;
+    let sim = simulated_frames(kind.clone(), 24);
     let poses = true_poses(&sim, &kind);
     let masks = segment(&sim, &poses, &InitialBand::Auto);
     assert_coverage(
