@@ -50,6 +50,41 @@ fn polygon_around_first_boundary(s: &SyntheticSweep, half_width_px: f64) -> Vec<
     poly
 }
 
+/// The default segmentation from a polygon +/- 15 px around the first frame's boundary.
+fn segment_from_first_polygon(s: &SyntheticSweep) -> BandMasks {
+    segment_sequence(
+        &s.sequence,
+        &s.poses,
+        None,
+        &InitialBand::Polygon(polygon_around_first_boundary(s, 15.0)),
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap()
+}
+
+/// Share of the pixels 12-20 px from the boundary of `frame`, in columns `columns`, that its mask keeps:
+/// beyond the narrow radius of an unconfirmed echo (11.4 px), inside the full band (29.2 px).
+fn flank_kept(
+    s: &SyntheticSweep,
+    masks: &BandMasks,
+    frame: usize,
+    columns: std::ops::Range<usize>,
+) -> f64 {
+    let w = s.sequence.width;
+    let (mut near, mut kept) = (0usize, 0usize);
+    for u in columns {
+        let b = s.boundary_row(frame, u as f64).round() as usize;
+        for v in b.saturating_sub(40)..(b + 40).min(s.sequence.height) {
+            if (12.0..=20.0).contains(&s.distance_to_boundary_px(frame, u, v, 41.0)) {
+                near += 1;
+                kept += (masks.masks[frame][v * w + u] != 0) as usize;
+            }
+        }
+    }
+    kept as f64 / near as f64
+}
+
 #[test]
 fn auto_init_band_keeps_the_boundary_and_drops_most_pixels() {
     let s = synthetic_sweep(320, 240, 10, 0.15, 3.0, 7);
@@ -75,16 +110,7 @@ fn auto_init_band_keeps_the_boundary_and_drops_most_pixels() {
 #[test]
 fn polygon_init_band_keeps_the_boundary_and_drops_most_pixels() {
     let s = synthetic_sweep(320, 240, 10, 0.15, -4.0, 11);
-    let init = InitialBand::Polygon(polygon_around_first_boundary(&s, 15.0));
-    let masks = segment_sequence(
-        &s.sequence,
-        &s.poses,
-        None,
-        &init,
-        &SegmentOptions::default(),
-        &NoProgress,
-    )
-    .unwrap();
+    let masks = segment_from_first_polygon(&s);
     let (kept_near, kept_all) = coverage(&s, &masks, 0..10, 1.0);
     assert!(
         kept_near >= 0.99,
@@ -246,15 +272,7 @@ fn lost_band_is_reported_with_its_frame_and_recovered() {
         }
     }
     px[6 * w * h..7 * w * h].fill(0);
-    let masks = segment_sequence(
-        &s.sequence,
-        &s.poses,
-        None,
-        &InitialBand::Polygon(polygon_around_first_boundary(&s, 15.0)),
-        &SegmentOptions::default(),
-        &NoProgress,
-    )
-    .unwrap();
+    let masks = segment_from_first_polygon(&s);
     assert!(
         masks
             .warnings
@@ -497,23 +515,8 @@ fn backward_pass_gives_an_echo_the_full_band_on_the_frame_it_enters() {
         .unwrap()
     };
     let (forward, both) = (run(false), run(true));
-    // Share of the pixels 12-20 px from the boundary in the right half that a frame keeps: beyond the
-    // narrow radius, inside the full one (29.2 px).
-    let w = s.sequence.width;
-    let right_flank = |masks: &BandMasks, f: usize| {
-        let (mut near, mut kept) = (0usize, 0usize);
-        for u in (w / 2 + 20)..(w - 5) {
-            let b = s.boundary_row(f, u as f64).round() as usize;
-            for v in b.saturating_sub(40)..(b + 40).min(s.sequence.height) {
-                let d = s.distance_to_boundary_px(f, u, v, 41.0);
-                if (12.0..=20.0).contains(&d) {
-                    near += 1;
-                    kept += (masks.masks[f][v * w + u] != 0) as usize;
-                }
-            }
-        }
-        kept as f64 / near as f64
-    };
+    let right = s.sequence.width / 2 + 20..s.sequence.width - 5;
+    let right_flank = |masks: &BandMasks, f: usize| flank_kept(&s, masks, f, right.clone());
     assert!(
         right_flank(&forward, 0) < 0.5,
         "{}",
@@ -549,28 +552,10 @@ fn a_later_sweep_starts_from_the_given_band_and_the_carried_one() {
         p.image_to_world =
             DMat4::from_translation(glam::DVec3::new(10.0, 0.0, 0.0)) * p.image_to_world;
     }
-    let masks = segment_sequence(
-        &s.sequence,
-        &s.poses,
-        None,
-        &InitialBand::Polygon(polygon_around_first_boundary(&s, 15.0)),
-        &SegmentOptions::default(),
-        &NoProgress,
-    )
-    .unwrap();
+    let masks = segment_from_first_polygon(&s);
     assert_eq!(masks.initialised_frames, vec![0, 6], "{:?}", masks.warnings);
-    let w = s.sequence.width;
-    let (mut near, mut kept) = (0usize, 0usize);
-    for u in 10..w - 10 {
-        let b = s.boundary_row(6, u as f64).round() as usize;
-        for v in b.saturating_sub(40)..(b + 40).min(s.sequence.height) {
-            if (12.0..=20.0).contains(&s.distance_to_boundary_px(6, u, v, 41.0)) {
-                near += 1;
-                kept += (masks.masks[6][v * w + u] != 0) as usize;
-            }
-        }
-    }
-    assert!(kept as f64 > 0.99 * near as f64, "{kept} of {near}");
+    let flank = flank_kept(&s, &masks, 6, 10..s.sequence.width - 10);
+    assert!(flank > 0.99, "{flank}");
     let (near_kept, kept_all) = coverage(&s, &masks, 0..10, 1.0);
     assert!(
         near_kept >= 0.99 && kept_all <= 0.30,
