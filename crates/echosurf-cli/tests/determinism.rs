@@ -64,12 +64,32 @@ fn outputs_with(threads: &str, root: &Path) -> Vec<(String, Vec<u8>)> {
         &dir,
         threads,
     );
+    run(
+        &[
+            "extract",
+            "sim/sim.mha",
+            "--config",
+            "sim/sim_config.xml",
+            "--max-samples",
+            "1500",
+            "--seed",
+            "3",
+            "--sheet",
+            "ridge",
+            "--backward-pass",
+            "--out",
+            "ridge.ply",
+        ],
+        &dir,
+        threads,
+    );
     [
         "sim/sim.mha",
         "sim/truth.ply",
         "mesh.ply",
         "model.esrbf",
         "samples.ply",
+        "ridge.ply",
     ]
     .iter()
     .map(|name| (name.to_string(), std::fs::read(dir.join(name)).unwrap()))

@@ -27,8 +27,12 @@ pub struct SheetOptions {
 }
 
 impl Default for SheetOptions {
-    /// Measured on the simulated duck (seed 1) through its echo-ridge points; see
-    /// `pipeline::Sheet::EchoRidge` for the figures.
+    /// Measured through the echo-ridge points of the simulated duck (seed 1, pieces under 5 mm^2
+    /// removed): h 0.8 / reach 0.75 mm gave mean 0.20 mm and p95 0.54 mm to the truth in 10 pieces;
+    /// reach 1.0 mm, 0.28 / 0.85 mm in 11 (the wider reach bridges to echoes that are not the wall's,
+    /// and trimming the overhang at the rims does not recover it: p95 0.82); h 0.5 / reach 1.0 mm,
+    /// 0.31 / 0.88 mm. Holes up to 6 mm around (about 2 mm across) are closed: they lie within 1 mm of
+    /// their rim, so closing them changes no completeness figure, only the look.
     fn default() -> Self {
         SheetOptions {
             smoothing_mm: 0.8,
@@ -61,9 +65,10 @@ pub fn sheet_through_points(
         return Ok((Mesh::default(), SurfaceStats::default()));
     };
     let domain = SurfaceDomain {
+        bounds_min_mm: domain.bounds_min_mm,
+        bounds_max_mm: domain.bounds_max_mm,
         seeds: field.points.clone(),
         trust_points: Vec::new(),
-        ..domain.clone()
     };
     let (mut meshes, stats) = super::extract_surfaces_with_stats(&field, &[0.0], &domain, surface)?;
     let mut mesh = meshes.remove(0);
