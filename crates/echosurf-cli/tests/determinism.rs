@@ -42,47 +42,29 @@ fn outputs_with(threads: &str, root: &Path) -> Vec<(String, Vec<u8>)> {
         &dir,
         threads,
     );
-    run(
-        &[
-            "extract",
-            "sim/sim.mha",
-            "--config",
-            "sim/sim_config.xml",
-            "--max-samples",
-            "1500",
-            "--resolution",
-            "2",
-            "--seed",
-            "3",
-            "--out",
-            "mesh.ply",
-            "--model",
-            "model.esrbf",
-            "--samples",
-            "samples.ply",
-        ],
-        &dir,
-        threads,
-    );
-    run(
-        &[
-            "extract",
-            "sim/sim.mha",
-            "--config",
-            "sim/sim_config.xml",
-            "--max-samples",
-            "1500",
-            "--seed",
-            "3",
-            "--sheet",
-            "ridge",
-            "--backward-pass",
-            "--out",
-            "ridge.ply",
-        ],
-        &dir,
-        threads,
-    );
+    let extract = [
+        "extract",
+        "sim/sim.mha",
+        "--config",
+        "sim/sim_config.xml",
+        "--max-samples",
+        "1500",
+        "--seed",
+        "3",
+    ];
+    let iso = [
+        "--resolution",
+        "2",
+        "--out",
+        "mesh.ply",
+        "--model",
+        "model.esrbf",
+        "--samples",
+        "samples.ply",
+    ];
+    let ridge = ["--sheet", "ridge", "--backward-pass", "--out", "ridge.ply"];
+    run(&[&extract[..], &iso].concat(), &dir, threads);
+    run(&[&extract[..], &ridge].concat(), &dir, threads);
     [
         "sim/sim.mha",
         "sim/truth.ply",

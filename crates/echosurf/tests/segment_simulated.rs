@@ -157,10 +157,6 @@ fn polygon_on_first_frame(
     InitialBand::Polygon(top)
 }
 
-fn segment(sim: &Simulation, poses: &PoseResolution, init: &InitialBand) -> BandMasks {
-    segment_with(sim, poses, init, &SegmentOptions::chained())
-}
-
 fn segment_with(
     sim: &Simulation,
     poses: &PoseResolution,
@@ -207,17 +203,39 @@ fn assert_coverage(c: &Coverage, min_near_kept: &[(f64, f64)]) {
     }
 }
 
+/// Chained-edgel coverage of the visible surface of `kind` (the sphere: one 12-frame pass; the duck: 24
+/// frames), from the automatic band or a polygon drawn on the first frame, with or without the backward
+/// pass.
+fn chained_coverage(kind: PhantomKind, polygon: bool, backward_pass: bool) -> Coverage {
+    let sim = match kind {
+        PhantomKind::Duck => simulated_frames(kind.clone(), 24),
+        _ => simulated(kind.clone()),
+    };
+    let poses = true_poses(&sim, &kind);
+    let init = if polygon {
+        polygon_on_first_frame(&sim, &kind, &poses)
+    } else {
+        InitialBand::Auto
+    };
+    let options = SegmentOptions {
+        backward_pass,
+        ..SegmentOptions::chained()
+    };
+    coverage(
+        &sim,
+        &kind,
+        &poses,
+        &segment_with(&sim, &poses, &init, &options),
+    )
+}
+
 /// Measured with `SegmentOptions::chained()`: 100 % (45 deg) / 99.7 % (60 deg) near the surface, 26.5 %
 /// of all pixels (chains linked over 3 rows instead of 4: 100 % / 98.8 %, 24.6 %; the paper's M largest
 /// edgels with 0.5 mm smoothing: 100 % / 95.9 %, 50.8 %).
 #[test]
 fn simulated_sphere_auto_init() {
-    let kind = PhantomKind::Sphere;
-    let sim = simulated(kind.clone());
-    let poses = true_poses(&sim, &kind);
-    let masks = segment(&sim, &poses, &InitialBand::Auto);
     assert_coverage(
-        &coverage(&sim, &kind, &poses, &masks),
+        &chained_coverage(PhantomKind::Sphere, false, false),
         &[(45.0, 0.99), (60.0, 0.99)],
     );
 }
@@ -225,13 +243,8 @@ fn simulated_sphere_auto_init() {
 /// Measured: 100 % / 99.7 %, 26.0 % of all pixels.
 #[test]
 fn simulated_sphere_polygon_init() {
-    let kind = PhantomKind::Sphere;
-    let sim = simulated(kind.clone());
-    let poses = true_poses(&sim, &kind);
-    let init = polygon_on_first_frame(&sim, &kind, &poses);
-    let masks = segment(&sim, &poses, &init);
     assert_coverage(
-        &coverage(&sim, &kind, &poses, &masks),
+        &chained_coverage(PhantomKind::Sphere, true, false),
         &[(45.0, 0.99), (60.0, 0.99)],
     );
 }
@@ -239,12 +252,8 @@ fn simulated_sphere_polygon_init() {
 /// The duck (a 2 mm rubber shell: outer and inner walls). Measured: 100 % / 97.1 %, 24.9 % of all pixels.
 #[test]
 fn simulated_duck_auto_init() {
-    let kind = PhantomKind::Duck;
-    let sim = simulated_frames(kind.clone(), 24);
-    let poses = true_poses(&sim, &kind);
-    let masks = segment(&sim, &poses, &InitialBand::Auto);
     assert_coverage(
-        &coverage(&sim, &kind, &poses, &masks),
+        &chained_coverage(PhantomKind::Duck, false, false),
         &[(45.0, 0.99), (60.0, 0.96)],
     );
 }
@@ -255,12 +264,8 @@ fn simulated_duck_auto_init() {
 #[test]
 #[ignore = "not met: the duck's steep walls (45-60 degrees) return no echo (cos^12); 97.1 % measured"]
 fn issue_target_duck_60_degrees() {
-    let kind = PhantomKind::Duck;
-    let sim = simulated_frames(kind.clone(), 24);
-    let poses = true_poses(&sim, &kind);
-    let masks = segment(&sim, &poses, &InitialBand::Auto);
     assert_coverage(
-        &coverage(&sim, &kind, &poses, &masks),
+        &chained_coverage(PhantomKind::Duck, false, false),
         &[(45.0, 0.99), (60.0, 0.99)],
     );
 }
@@ -272,21 +277,8 @@ fn issue_target_duck_60_degrees() {
 /// 99.9 % / 96.9 %, 24.1 %.
 #[test]
 fn simulated_duck_polygon_init() {
-    let kind = PhantomKind::Duck;
-    let sim = simulated_frames(kind.clone(), 24);
-    let poses = true_poses(&sim, &kind);
-    let init = polygon_on_first_frame(&sim, &kind, &poses);
-    let one_way = coverage(&sim, &kind, &poses, &segment(&sim, &poses, &init));
-    let options = SegmentOptions {
-        backward_pass: true,
-        ..SegmentOptions::chained()
-    };
-    let both = coverage(
-        &sim,
-        &kind,
-        &poses,
-        &segment_with(&sim, &poses, &init, &options),
-    );
+    let one_way = chained_coverage(PhantomKind::Duck, true, false);
+    let both = chained_coverage(PhantomKind::Duck, true, true);
     assert_coverage(&one_way, &[(45.0, 0.99), (60.0, 0.95)]);
     assert_coverage(&both, &[(45.0, 0.99), (60.0, 0.95)]);
     assert!(both.near_kept[0].1 > one_way.near_kept[0].1);
