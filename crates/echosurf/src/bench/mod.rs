@@ -17,7 +17,7 @@ use glam::{DMat4, DVec3};
 
 use crate::io::{Calibration, ClipRect, TrackedSequence, resolve_poses};
 use crate::mesh::Mesh;
-use crate::metrics::{CompareOptions, compare_meshes, triangle_mask};
+use crate::metrics::{CompareOptions, compare_meshes, triangle_map};
 use crate::pipeline::{ExtractOptions, IsoLevels, Method, Sheet, VoxelRouteOptions, extract};
 use crate::progress::NoProgress;
 use crate::simulate::{PhantomKind, SimulationOptions, TrackingErrors, simulate};
@@ -180,12 +180,33 @@ pub fn swept_beam_facing_mask(
     max_plane_distance_mm: f64,
     max_angle_deg: f64,
 ) -> Vec<bool> {
+    let cosines = swept_beam_cosines(
+        truth,
+        image_to_world,
+        width,
+        height,
+        clip,
+        max_plane_distance_mm,
+    );
+    facing_within(&cosines, max_angle_deg)
+}
+
+/// Per truth triangle, the largest |cos| between its normal and the beam of a frame that sweeps it (its
+/// centroid projects into the frame's clipped image within `max_plane_distance_mm` of the plane);
+/// `-inf` where no frame does. One pass over the frames serves every angle ([`facing_within`]).
+pub fn swept_beam_cosines(
+    truth: &Mesh,
+    image_to_world: &[DMat4],
+    width: usize,
+    height: usize,
+    clip: Option<ClipRect>,
+    max_plane_distance_mm: f64,
+) -> Vec<f64> {
     let (u0, v0, u1, v1) =
         match clip.and_then(|c| crate::io::pose::clip_corners_px(width, height, &c)) {
             Some([a, b, c, d]) => (a, b, c, d),
             None => (0.0, 0.0, width as f64 - 1.0, height as f64 - 1.0),
         };
-    let cos_limit = max_angle_deg.to_radians().cos();
     // Per frame: world -> image, image -> world, the unit beam direction and the plane's unit normal.
     let frames: Vec<(DMat4, DMat4, DVec3, DVec3)> = image_to_world
         .iter()
@@ -198,20 +219,29 @@ pub fn swept_beam_facing_mask(
             Some((m.inverse(), *m, beam, normal))
         })
         .collect();
-    triangle_mask(truth, |centroid, triangle_normal| {
-        triangle_normal.is_finite()
-            && frames
-                .iter()
-                .any(|(world_to_image, to_world, beam, plane_normal)| {
-                    let p = world_to_image.transform_point3(centroid);
-                    if !(p.x >= u0 && p.x <= u1 && p.y >= v0 && p.y <= v1) {
-                        return false;
-                    }
-                    let foot = to_world.transform_point3(DVec3::new(p.x, p.y, 0.0));
-                    (centroid - foot).dot(*plane_normal).abs() <= max_plane_distance_mm
-                        && triangle_normal.dot(*beam).abs() >= cos_limit
-                })
+    triangle_map(truth, f64::NEG_INFINITY, |centroid, triangle_normal| {
+        if !triangle_normal.is_finite() {
+            return f64::NEG_INFINITY;
+        }
+        frames
+            .iter()
+            .filter(|(world_to_image, to_world, _, plane_normal)| {
+                let p = world_to_image.transform_point3(centroid);
+                if !(p.x >= u0 && p.x <= u1 && p.y >= v0 && p.y <= v1) {
+                    return false;
+                }
+                let foot = to_world.transform_point3(DVec3::new(p.x, p.y, 0.0));
+                (centroid - foot).dot(*plane_normal).abs() <= max_plane_distance_mm
+            })
+            .map(|(_, _, beam, _)| triangle_normal.dot(*beam).abs())
+            .fold(f64::NEG_INFINITY, f64::max)
     })
+}
+
+/// The triangles of [`swept_beam_cosines`] facing a sweeping frame's beam within `max_angle_deg`.
+pub fn facing_within(cosines: &[f64], max_angle_deg: f64) -> Vec<bool> {
+    let cos_limit = max_angle_deg.to_radians().cos();
+    cosines.iter().map(|&c| c >= cos_limit).collect()
 }
 
 /// One route on one case.
@@ -284,30 +314,22 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
     let plane_distance = median_spacing(&case.true_image_to_world)
         .unwrap_or(1.5)
         .max(1.5);
-    let mask = swept_beam_facing_mask(
+    let cosines = swept_beam_cosines(
         &case.truth,
         &case.true_image_to_world,
         case.sequence.width,
         case.sequence.height,
         case.calibration.clip,
         plane_distance,
-        60.0,
     );
+    let mask = facing_within(&cosines, 60.0);
     if !mask.iter().any(|&m| m) {
         return Err(Error::InvalidInput(format!(
             "{}: no truth triangle is swept and beam-facing (do the truth and the sequence share a frame?)",
             case.name
         )));
     }
-    let strong_mask = swept_beam_facing_mask(
-        &case.truth,
-        &case.true_image_to_world,
-        case.sequence.width,
-        case.sequence.height,
-        case.calibration.clip,
-        plane_distance,
-        STRONG_ECHO_DEG,
-    );
+    let strong_mask = facing_within(&cosines, STRONG_ECHO_DEG);
     let truth_patches = masked_patches(&case.truth, &strong_mask, MIN_PATCH_AREA_MM2);
     let compare = CompareOptions {
         samples_per_mm2: if options.quick { 2.0 } else { 5.0 },

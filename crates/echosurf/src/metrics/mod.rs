@@ -147,17 +147,23 @@ pub fn compare_meshes(mesh: &Mesh, truth: &Mesh, options: &CompareOptions) -> Re
 /// [`CompareOptions::truth_mask`] from "swept and facing the beam". Degenerate triangles (no normal) and
 /// triangles with indices out of range get `false`.
 pub fn triangle_mask(mesh: &Mesh, keep: impl Fn(DVec3, DVec3) -> bool) -> Vec<bool> {
+    triangle_map(mesh, false, keep)
+}
+
+/// One value per triangle of `mesh`: `f(centroid, unit normal)`; `invalid` for degenerate triangles
+/// (no normal) and triangles with indices out of range.
+pub fn triangle_map<T: Copy>(mesh: &Mesh, invalid: T, f: impl Fn(DVec3, DVec3) -> T) -> Vec<T> {
     let n = mesh.vertices.len();
     mesh.triangles
         .iter()
         .map(|t| {
             if t.iter().any(|&i| i as usize >= n) {
-                return false;
+                return invalid;
             }
             let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
             match (b - a).cross(c - a).try_normalize() {
-                Some(normal) => keep((a + b + c) / 3.0, normal),
-                None => false,
+                Some(normal) => f((a + b + c) / 3.0, normal),
+                None => invalid,
             }
         })
         .collect()
