@@ -1,13 +1,14 @@
-//! `echosurf demo` end to end: the README's main command, here with the ridge sheet.
+//! `echosurf demo` end to end: the README's main command, as it runs there (the automatic sheet choice
+//! takes the ridge sheet on the simulated duck).
 
 use std::process::Command;
 
 #[test]
-fn demo_writes_everything_and_the_ridge_sheet_is_accurate() {
+fn demo_writes_everything_and_its_ridge_sheet_is_accurate() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("demo");
     let run = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .args(["demo", "--sheet", "ridge", "--out"])
+        .args(["demo", "--out"])
         .arg(&out)
         .output()
         .unwrap();
@@ -27,7 +28,7 @@ fn demo_writes_everything_and_the_ridge_sheet_is_accurate() {
     ] {
         assert!(out.join(file).is_file(), "{file} missing:\n{stdout}");
     }
-    assert!(stdout.contains("surface (ridge sheet)"), "{stdout}");
+    assert!(stdout.contains("surface (ridge sheet (auto: "), "{stdout}");
     // "accuracy vs true walls: mean 0.20 mm, p95 0.55 mm; ..." (seed 1: 0.20 / 0.55, deterministic).
     let number_after = |key: &str| -> f64 {
         let rest = &stdout[stdout
@@ -43,4 +44,13 @@ fn demo_writes_everything_and_the_ridge_sheet_is_accurate() {
     assert!(mean <= 0.30 && p95 <= 0.60, "mean {mean} p95 {p95}");
     let mesh = echosurf::io::read_mesh(&out.join("duck_surface.ply")).unwrap();
     assert!(mesh.topology().is_oriented_manifold());
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("duck_report.json")).unwrap()).unwrap();
+    assert_eq!(report["parameters"]["sheet"], "Auto");
+    assert_eq!(report["sheets"][0]["sheet"], "EchoRidge");
+    let share = report["sheets"][0]["ridge_reached_share"].as_f64().unwrap();
+    assert!(
+        share >= echosurf::pipeline::AUTO_RIDGE_MIN_REACHED_SHARE,
+        "{share}"
+    );
 }

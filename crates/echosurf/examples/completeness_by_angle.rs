@@ -2,7 +2,7 @@
 //! defaults, and prints the completeness (share of truth within 1 mm of the mesh) per wall, per band of
 //! angle between the truth's normal and the nearest sweeping frame's beam, and per facing sign (outward
 //! normal against the beam: the side facing the probe). Environment overrides: `MAXS` (sample budget),
-//! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`, `RIDGE=1` (ridge sheet),
+//! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`, `SHEET=iso|ridge` (default: auto, as `extract`),
 //! `MINCOMP` (smallest piece kept, mm^2), `CHAIN=1` (chained edgels), `BACK=1` (backward band pass), `SEED`, and for the ridge sheet
 //! `SHEET_H` (smoothing mm), `SHEET_REACH` (mm), `HOLE` (largest hole closed, perimeter mm).
 //! `cargo run --release --example completeness_by_angle -- duck [mesh.ply]`
@@ -49,8 +49,10 @@ fn main() -> echosurf::Result<()> {
     if let Some(v) = env("HOLE") {
         options.echo_sheet.max_hole_perimeter_mm = v;
     }
-    if env("RIDGE") == Some(1.0) {
-        options.sheet = echosurf::pipeline::Sheet::EchoRidge;
+    match std::env::var("SHEET").as_deref() {
+        Ok("iso") => options.sheet = echosurf::pipeline::Sheet::Iso,
+        Ok("ridge") => options.sheet = echosurf::pipeline::Sheet::EchoRidge,
+        _ => {}
     }
     if let Some(v) = env("MINCOMP") {
         options.min_component_area_mm2 = Some(v);

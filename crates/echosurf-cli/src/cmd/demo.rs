@@ -22,9 +22,9 @@ pub struct Args {
     /// Seed of the simulation (same seed, same bytes).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Output surface, as for `extract`: `iso` (the paper's iso-surface) or `ridge` (one sheet on each
-    /// echo's ridge).
-    #[arg(long, default_value = "iso")]
+    /// Output surface, as for `extract`: `auto`, `iso` (the paper's iso-surface) or `ridge` (one sheet
+    /// on each echo's ridge).
+    #[arg(long, default_value = "auto")]
     pub sheet: String,
 }
 
@@ -111,8 +111,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         r.levels.map(|l| l.boundary).unwrap_or(f32::NAN)
     );
     println!(
-        "  surface ({} sheet): {} triangles, {} component(s)",
-        args.sheet.to_ascii_lowercase(),
+        "  surface ({}): {} triangles, {} component(s)",
+        r.sheets
+            .first()
+            .map(|used| super::extract::describe_sheet(used, r.parameters.sheet))
+            .unwrap_or_default(),
         surface.mesh.triangles.len(),
         comparison.mesh_topology.components
     );

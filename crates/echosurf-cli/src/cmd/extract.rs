@@ -65,9 +65,11 @@ pub struct Args {
     /// budget), the rest at random; 0 = the paper's uniform random decimation.
     #[arg(long, default_value_t = pipeline::DEFAULT_ECHO_MARGIN_MM)]
     pub echo_margin: f64,
-    /// Output surface: `iso` (the iso-surface, a sheath of two sheets around a thin echo) or `ridge`
-    /// (one smooth sheet through the echo's ridge: on the boundary, open where no echo came back).
-    #[arg(long, default_value = "iso")]
+    /// Output surface: `iso` (the iso-surface, a sheath of two sheets around a thin echo), `ridge`
+    /// (one smooth sheet through the echo's ridge: on the boundary, open where no echo came back), or
+    /// `auto`: the ridge sheet where the echoes are thin ridges (80 % of the iso-surface's probe side
+    /// finds the echo's peak within 1.5 mm along the beam), the iso-surface otherwise.
+    #[arg(long, default_value = "auto")]
     pub sheet: String,
     /// Ridge sheet: distance (mm) over which the sheet averages the ridge points.
     #[arg(long, default_value_t = SheetOptions::default().smoothing_mm)]
@@ -176,13 +178,35 @@ pub fn memory_budget_bytes(mb: Option<f64>) -> anyhow::Result<u64> {
     }
 }
 
-/// `--sheet iso|ridge`.
+/// `--sheet iso|ridge|auto`.
 pub(crate) fn parse_sheet(text: &str) -> anyhow::Result<Sheet> {
     Ok(match text.to_ascii_lowercase().as_str() {
         "iso" => Sheet::Iso,
         "ridge" => Sheet::EchoRidge,
-        other => anyhow::bail!("--sheet {other}: expected iso or ridge"),
+        "auto" => Sheet::Auto,
+        other => anyhow::bail!("--sheet {other}: expected auto, iso or ridge"),
     })
+}
+
+/// How the report names a sheet, and why `auto` chose it.
+pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet) -> String {
+    let name = match used.sheet {
+        Sheet::EchoRidge => "ridge",
+        _ => "iso",
+    };
+    match (asked, used.ridge_reached_share) {
+        (Sheet::Auto, Some(share)) => format!(
+            "{name} sheet (auto: {:.0} % of the probe side reached an echo ridge, {} {:.0} %)",
+            100.0 * share,
+            if used.sheet == Sheet::EchoRidge {
+                "at least"
+            } else {
+                "below"
+            },
+            100.0 * echosurf::pipeline::AUTO_RIDGE_MIN_REACHED_SHARE
+        ),
+        _ => format!("{name} sheet"),
+    }
 }
 
 pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
@@ -391,11 +415,12 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
         );
     }
     let several = output.surfaces.len() > 1;
-    for s in &output.surfaces {
+    for (s, used) in output.surfaces.iter().zip(&r.sheets) {
         let t = s.mesh.topology();
         println!(
-            "iso {}: {} triangles, {} component(s), {} -> {}",
+            "iso {}: {}, {} triangles, {} component(s), {} -> {}",
             format_level(s.level),
+            describe_sheet(used, r.parameters.sheet),
             s.mesh.triangles.len(),
             t.components,
             if t.is_closed_manifold() {

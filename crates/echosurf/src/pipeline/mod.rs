@@ -99,7 +99,7 @@ impl Default for ExtractOptions {
             trust_distance_mm: None,
             sample_bin_mm: 0.4,
             echo_margin_mm: Some(DEFAULT_ECHO_MARGIN_MM),
-            sheet: Sheet::Iso,
+            sheet: Sheet::Auto,
             echo_sheet: SheetOptions::default(),
             min_component_area_mm2: None,
             memory_budget_bytes: None,
@@ -121,7 +121,7 @@ pub const DEFAULT_SMOOTHING_MM: f64 = 2.0;
 /// of the beam from 1.000 / 0.988 (outer / inner wall) to 1.000 / 0.984; 20 mm^2 leaves 10.
 pub const DEFAULT_MIN_COMPONENT_AREA_MM2: f64 = 5.0;
 /// The same for the echo-ridge sheet. Measured on the simulated duck (seed 1; `examples/
-/// completeness_by_angle.rs`, RIDGE=1): 0.5 / 1 / 2 / 5 mm^2 leave 57 / 33 / 20 / 10 components, and
+/// completeness_by_angle.rs`, SHEET=ridge): 0.5 / 1 / 2 / 5 mm^2 leave 57 / 33 / 20 / 10 components, and
 /// of the inner wall's probe side within 20 degrees of the beam 0.986 / 0.982 / 0.981 / 0.965 within
 /// 1 mm (the outer wall's stays 0.998-0.999); hand: 0.992 / 0.992 / 0.990 / 0.983.
 pub const DEFAULT_RIDGE_MIN_COMPONENT_AREA_MM2: f64 = 2.0;
@@ -138,16 +138,43 @@ pub enum Sheet {
     /// sweep); a smooth sheet is then drawn through the moved vertices ([`sheet_through_points`],
     /// [`ExtractOptions::echo_sheet`]) and its small holes closed.
     EchoRidge,
+    /// Per level, the echo-ridge sheet when the echoes are thin ridges, the iso-surface otherwise: the
+    /// ridge sheet is taken when at least [`AUTO_RIDGE_MIN_REACHED_SHARE`] of the iso-surface's proximal
+    /// sheet found the field's maximum along the beam within reach ([`RidgeStats::reached_share`]).
+    Auto,
 }
 
 impl Sheet {
-    /// Smallest piece kept unless told otherwise.
+    /// Smallest piece kept unless told otherwise (of the sheet actually drawn: `Auto` resolves to one of
+    /// the others first).
     pub fn default_min_component_area_mm2(self) -> f64 {
         match self {
-            Sheet::Iso => DEFAULT_MIN_COMPONENT_AREA_MM2,
+            Sheet::Iso | Sheet::Auto => DEFAULT_MIN_COMPONENT_AREA_MM2,
             Sheet::EchoRidge => DEFAULT_RIDGE_MIN_COMPONENT_AREA_MM2,
         }
     }
+}
+
+/// `Sheet::Auto` draws the ridge sheet when at least this share of the proximal sheet reached a ridge.
+/// Measured (`RidgeStats`, release build, defaults): simulated duck and hand at low / default / high noise
+/// (`echosurf bench routes`) 0.889 / 0.908 / 0.920 and 0.963 / 0.962 / 0.943, where the ridge sheet is
+/// the more accurate in every case (mean 0.15-0.46 mm against 0.42-0.68 mm); the real N-wire sweep
+/// 0.891 (wire echoes); the real spine sweep (NN_MEAN config) 0.597: tissue as bright as the iso-level
+/// over the bone, where the field still rises 1.5 mm past the sheath and the ridge sheet is lacy
+/// (27 pieces against the iso-surface's 5).
+pub const AUTO_RIDGE_MIN_REACHED_SHARE: f64 = 0.8;
+
+/// The sheet drawn for one iso-level, and why.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SheetUsed {
+    pub level: f64,
+    /// `Iso` or `EchoRidge`.
+    pub sheet: Sheet,
+    /// Share of the iso-surface's proximal sheet that reached an echo ridge (`None`: not searched,
+    /// `--sheet iso`).
+    pub ridge_reached_share: Option<f64>,
+    /// Smallest piece kept (mm^2).
+    pub min_component_area_mm2: f64,
 }
 
 /// The beam direction of the frame nearest a point (among frames whose image the point projects into).
@@ -248,8 +275,10 @@ pub struct UsedParameters {
     pub sample_bin_mm: f64,
     /// `None`: uniform random thinning.
     pub echo_margin_mm: Option<f64>,
+    /// As asked; what each level got is in [`ExtractReport::sheets`].
     pub sheet: Sheet,
-    pub min_component_area_mm2: f64,
+    /// As asked; `None`: each sheet's default ([`Sheet::default_min_component_area_mm2`]).
+    pub min_component_area_mm2: Option<f64>,
     /// `None` when the route did not segment (voxel route with explicit iso-levels).
     pub segment: Option<ResolvedParameters>,
 }
@@ -266,6 +295,8 @@ pub struct ExtractReport {
     /// The RBF route's fit and surfacer work (`None` on the voxel route).
     pub fit: Option<FitReport>,
     pub surface: Option<SurfaceStats>,
+    /// The sheet drawn for each level.
+    pub sheets: Vec<SheetUsed>,
     /// The voxel route's volume and marching cubes (`None` on the RBF route).
     pub voxel: Option<VoxelRouteReport>,
     pub stages: Vec<StageUsage>,
@@ -618,32 +649,47 @@ pub fn extract(
     let (mut meshes, surface_stats) = meter.stage("surface", || {
         extract_surfaces_with_stats(&model, &levels, &domain, &surface_options)
     })?;
-    if options.sheet == Sheet::EchoRidge {
+    let mut sheets: Vec<SheetUsed> = levels
+        .iter()
+        .map(|&level| SheetUsed {
+            level,
+            sheet: Sheet::Iso,
+            ridge_reached_share: None,
+            min_component_area_mm2: 0.0,
+        })
+        .collect();
+    if options.sheet != Sheet::Iso {
         let beams = FrameBeams::new(sequence, &prepared.poses, trust_distance_mm);
         let beam = |x: DVec3| beams.beam_at(x);
-        meshes = meter.stage("ridge", || {
-            meshes
-                .iter()
-                .map(|m| {
-                    let ridge = proximal_sheet_on_ridge(m, &model, &beam, &RidgeOptions::default());
-                    let (sheet, _) = sheet_through_points(
-                        &ridge.vertices,
-                        &ridge.normals,
-                        &domain,
-                        &surface_options,
-                        &options.echo_sheet,
-                    )?;
-                    Ok(sheet)
-                })
-                .collect::<Result<Vec<_>>>()
+        meter.stage("ridge", || {
+            for (mesh, used) in meshes.iter_mut().zip(&mut sheets) {
+                let (ridge, stats) =
+                    proximal_sheet_on_ridge(mesh, &model, &beam, &RidgeOptions::default());
+                used.ridge_reached_share = Some(stats.reached_share());
+                if options.sheet == Sheet::Auto
+                    && stats.reached_share() < AUTO_RIDGE_MIN_REACHED_SHARE
+                {
+                    continue;
+                }
+                let (sheet, _) = sheet_through_points(
+                    &ridge.vertices,
+                    &ridge.normals,
+                    &domain,
+                    &surface_options,
+                    &options.echo_sheet,
+                )?;
+                *mesh = sheet;
+                used.sheet = Sheet::EchoRidge;
+            }
+            Ok::<_, Error>(())
         })?;
     }
-    let min_component_area_mm2 = options
-        .min_component_area_mm2
-        .unwrap_or(options.sheet.default_min_component_area_mm2());
-    if min_component_area_mm2 > 0.0 {
-        for mesh in &mut meshes {
-            mesh.remove_small_components(min_component_area_mm2);
+    for (mesh, used) in meshes.iter_mut().zip(&mut sheets) {
+        used.min_component_area_mm2 = options
+            .min_component_area_mm2
+            .unwrap_or(used.sheet.default_min_component_area_mm2());
+        if used.min_component_area_mm2 > 0.0 {
+            mesh.remove_small_components(used.min_component_area_mm2);
         }
     }
     for (level, mesh) in levels.iter().zip(&meshes) {
@@ -675,13 +721,14 @@ pub fn extract(
             sample_bin_mm: options.sample_bin_mm,
             echo_margin_mm: options.echo_margin_mm,
             sheet: options.sheet,
-            min_component_area_mm2,
+            min_component_area_mm2: options.min_component_area_mm2,
             segment: Some(prepared.masks.parameters),
         },
         levels: prepared.levels,
         counts,
         fit: Some(fit_report),
         surface: Some(surface_stats),
+        sheets,
         voxel: None,
         total_seconds: meter.total_seconds(),
         peak_rss_bytes: meter.peak_rss_bytes(),

@@ -280,13 +280,22 @@ pub(super) fn extract_voxel(
             sample_bin_mm: options.sample_bin_mm,
             echo_margin_mm: None,
             sheet: super::Sheet::Iso,
-            min_component_area_mm2: 0.0,
+            min_component_area_mm2: Some(0.0),
             segment: None,
         },
         levels: intensity_levels,
         counts,
         fit: None,
         surface: None,
+        sheets: levels
+            .iter()
+            .map(|&level| super::SheetUsed {
+                level,
+                sheet: super::Sheet::Iso,
+                ridge_reached_share: None,
+                min_component_area_mm2: 0.0,
+            })
+            .collect(),
         voxel: Some(voxel_report),
         total_seconds: meter.total_seconds(),
         peak_rss_bytes: meter.peak_rss_bytes(),

@@ -52,15 +52,18 @@ impl Default for RidgeOptions {
 /// frame saw `x` (those vertices are dropped). Proximal triangles keep their vertex order, distal ones
 /// are flipped, so normals point toward the probe. A triangle whose normal turns by more than 90
 /// degrees in the move is dropped, and pinched vertices are split.
+///
+/// The [`RidgeStats`] say how much of the proximal sheet found a ridge: a thin echo has its maximum
+/// within reach; a thick bright structure (tissue rising to a bone surface) does not.
 pub fn proximal_sheet_on_ridge(
     mesh: &Mesh,
     field: &dyn ScalarField,
     beam: &(dyn Fn(DVec3) -> Option<DVec3> + Sync),
     options: &RidgeOptions,
-) -> Mesh {
+) -> (Mesh, RidgeStats) {
     let n = mesh.vertices.len();
     if n == 0 || mesh.triangles.is_empty() {
-        return Mesh::default();
+        return (Mesh::default(), RidgeStats::default());
     }
     let mut values = vec![0.0; n];
     let mut gradients = vec![DVec3::ZERO; n];
@@ -141,7 +144,32 @@ pub fn proximal_sheet_on_ridge(
         }
     }
     out.split_pinched_vertices();
-    out
+    let stats = RidgeStats {
+        proximal_vertices: proximal.searched,
+        proximal_reached: proximal.reached,
+    };
+    (out, stats)
+}
+
+/// How much of the proximal sheet [`proximal_sheet_on_ridge`] moved onto a ridge.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct RidgeStats {
+    /// Vertices of the proximal sheet seen by a beam (searched along it).
+    pub proximal_vertices: usize,
+    /// Of those, the ones that found the field's maximum within `max_shift_mm` themselves (before
+    /// neighbours fill in the rest).
+    pub proximal_reached: usize,
+}
+
+impl RidgeStats {
+    /// Share of the proximal sheet's vertices that reached a ridge (0 when there were none).
+    pub fn reached_share(&self) -> f64 {
+        if self.proximal_vertices == 0 {
+            0.0
+        } else {
+            self.proximal_reached as f64 / self.proximal_vertices as f64
+        }
+    }
 }
 
 /// Passes that give vertices without a maximum in reach the mean shift of agreeing neighbours.
@@ -157,6 +185,9 @@ const DUPLICATE_RIDGE_MM: f64 = 0.5;
 struct SnappedSide {
     triangles: Vec<[u32; 3]>,
     moved: Vec<Option<DVec3>>,
+    /// Vertices searched along the beam, and those that found a maximum themselves.
+    searched: usize,
+    reached: usize,
 }
 
 fn snap_side(
@@ -224,6 +255,7 @@ fn snap_side(
         };
         shift[i] = Some((best as f64 + offset) * options.step_mm);
     }
+    let reached = shift.iter().filter(|s| s.is_some()).count();
     // A vertex that found no maximum takes its neighbours' mean shift when they agree (within
     // `FILL_AGREEMENT_MM`: neighbours that reached different echoes must not be averaged between them).
     let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
@@ -258,7 +290,12 @@ fn snap_side(
     let moved = (0..n)
         .map(|i| Some(mesh.vertices[i] + directions[i]? * (side * shift[i]?)))
         .collect();
-    SnappedSide { triangles, moved }
+    SnappedSide {
+        triangles,
+        moved,
+        searched: movers.len(),
+        reached,
+    }
 }
 
 #[cfg(test)]
@@ -310,7 +347,10 @@ mod tests {
         assert!(radii.iter().any(|&r| r < r0 - 0.25) && radii.iter().any(|&r| r > r0 + 0.25));
         // Beam straight down (-z), as from a probe above.
         let down = |_: DVec3| Some(DVec3::NEG_Z);
-        let ridge = proximal_sheet_on_ridge(&iso, &field, &down, &RidgeOptions::default());
+        let (ridge, stats) = proximal_sheet_on_ridge(&iso, &field, &down, &RidgeOptions::default());
+        // A thin echo: (nearly) every searched vertex of the proximal sheet finds its maximum.
+        assert!(stats.proximal_vertices > 100, "{stats:?}");
+        assert!(stats.reached_share() > 0.95, "{stats:?}");
         // Kept: the caps within 60 degrees of the beam (facing 0.5) of the outer sheet's top and the
         // inner sheet's bottom, a quarter of the sheath's area (less a rim of whole triangles). The
         // distal caps reach the same ridge and are dropped as duplicates (with them: a half).
@@ -343,7 +383,10 @@ mod tests {
         );
         // Without a beam anywhere, nothing is kept.
         let none = |_: DVec3| None;
-        assert!(proximal_sheet_on_ridge(&iso, &field, &none, &RidgeOptions::default()).is_empty());
+        let (nothing, stats) =
+            proximal_sheet_on_ridge(&iso, &field, &none, &RidgeOptions::default());
+        assert!(nothing.is_empty());
+        assert_eq!((stats.proximal_vertices, stats.reached_share()), (0, 0.0));
     }
 
     #[test]
@@ -354,7 +397,7 @@ mod tests {
         let field = FnField(shells(&[6.0, 6.8]));
         let iso = iso_at_50(&field);
         let down = |_: DVec3| Some(DVec3::NEG_Z);
-        let ridge = proximal_sheet_on_ridge(&iso, &field, &down, &RidgeOptions::default());
+        let (ridge, _) = proximal_sheet_on_ridge(&iso, &field, &down, &RidgeOptions::default());
         let top: Vec<f64> = ridge
             .vertices
             .iter()
@@ -401,6 +444,10 @@ mod tests {
             .remove(0);
         assert!(!iso.is_empty());
         let down = |_: DVec3| Some(DVec3::NEG_Z);
-        assert!(proximal_sheet_on_ridge(&iso, &ramp, &down, &RidgeOptions::default()).is_empty());
+        let (ridge, stats) = proximal_sheet_on_ridge(&iso, &ramp, &down, &RidgeOptions::default());
+        assert!(ridge.is_empty());
+        // Searched, and none reached a ridge: the share `extract --sheet auto` reads as "no thin echo".
+        assert!(stats.proximal_vertices > 20, "{stats:?}");
+        assert_eq!(stats.proximal_reached, 0);
     }
 }
