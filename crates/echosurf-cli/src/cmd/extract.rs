@@ -381,9 +381,10 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
     }
     if let Some(l) = r.levels {
         println!(
-            "echo levels: background {:.1}, boundary {:.1}{}",
+            "echo levels: background {:.1}, boundary {:.1}, strong echoes {:.1}{}",
             l.background,
             l.boundary,
+            l.strong_echo,
             if r.parameters.iso_auto {
                 format!(", iso auto = {:.1}", l.iso)
             } else {

@@ -340,6 +340,7 @@ pub fn volume_levels(mut data: Vec<f32>) -> Option<IntensityLevels> {
     Some(IntensityLevels {
         background,
         boundary: top,
+        strong_echo: top,
         iso: background + ISO_FRACTION * (top - background),
     })
 }
