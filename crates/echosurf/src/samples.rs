@@ -478,13 +478,14 @@ mod tests {
     use crate::io::{FramePose, PixelData};
     use crate::progress::NoProgress;
     use crate::segment::{
-        InitialBand, SegmentOptions, segment_sequence, synthetic::synthetic_sweep,
+        InitialBand, SegmentOptions, segment_sequence,
+        synthetic::{SyntheticSweep, synthetic_sweep},
     };
     use glam::DMat4;
 
-    #[test]
-    fn kept_pixels_map_through_their_frame_pose() {
-        let s = synthetic_sweep(40, 30, 3, 0.2, 0.0, 1);
+    /// Band masks of the sweep's frame size with every pixel set to `value` (the segmenter supplies
+    /// the frame metadata; the tests set the pixels they need).
+    fn uniform_masks(s: &SyntheticSweep, value: u8) -> BandMasks {
         let mut masks = segment_sequence(
             &s.sequence,
             &s.poses,
@@ -495,8 +496,15 @@ mod tests {
         )
         .unwrap();
         for m in &mut masks.masks {
-            m.fill(0);
+            m.fill(value);
         }
+        masks
+    }
+
+    #[test]
+    fn kept_pixels_map_through_their_frame_pose() {
+        let s = synthetic_sweep(40, 30, 3, 0.2, 0.0, 1);
+        let mut masks = uniform_masks(&s, 0);
         masks.masks[1][7 * 40 + 5] = 255;
         masks.masks[2][0] = 255;
         masks.masks[2][29 * 40 + 39] = 255;
@@ -530,18 +538,7 @@ mod tests {
             }
         }
         s.sequence.pixels = PixelData::U8(pixels);
-        let mut masks = segment_sequence(
-            &s.sequence,
-            &s.poses,
-            None,
-            &InitialBand::Auto,
-            &SegmentOptions::default(),
-            &NoProgress,
-        )
-        .unwrap();
-        for m in &mut masks.masks {
-            m.fill(255);
-        }
+        let masks = uniform_masks(&s, 255);
         estimate_echo_levels(&s.sequence, &s.poses, &masks).unwrap()
     }
 
