@@ -111,7 +111,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         r.levels.map(|l| l.boundary).unwrap_or(f32::NAN)
     );
     println!(
-        "  surface ({}): {} triangles, {} component(s)",
+        "  surface: {}, {} triangles, {} component(s)",
         r.sheets
             .first()
             .map(|used| super::extract::describe_sheet(used, r.parameters.sheet))
