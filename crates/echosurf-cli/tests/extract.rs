@@ -264,5 +264,15 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
     );
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--ridge-reach must be a positive"));
+    let bad = extract(
+        &seq,
+        &config,
+        &dir.path().join("bad.ply"),
+        &["--ridge-bridge", "nan"],
+    );
+    assert!(!bad.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad.stderr).contains("--ridge-bridge must be 0 or a positive")
+    );
     assert!(!dir.path().join("bad.ply").exists());
 }

@@ -4,7 +4,8 @@
 //! normal against the beam: the side facing the probe). Environment overrides: `MAXS` (sample budget),
 //! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`, `SHEET=iso|ridge` (default: auto, as `extract`),
 //! `MINCOMP` (smallest piece kept, mm^2), `CHAIN=1` (chained edgels), `BACK=1` (backward band pass), `SEED`, and for the ridge sheet
-//! `SHEET_H` (smoothing mm), `SHEET_REACH` (mm), `HOLE` (largest hole closed, perimeter mm).
+//! `SHEET_H` (smoothing mm), `SHEET_REACH` (mm), `SHEET_BRIDGE` (mm, 0 = off), `HOLE` (largest hole closed,
+//! perimeter mm).
 //! `cargo run --release --example completeness_by_angle -- duck [mesh.ply]`
 use echosurf::metrics::{CompareOptions, compare_meshes, triangle_mask};
 use echosurf::pipeline::{self, ExtractOptions};
@@ -42,6 +43,9 @@ fn main() -> echosurf::Result<()> {
     }
     if let Some(v) = env("SHEET_H") {
         options.echo_sheet.smoothing_mm = v;
+    }
+    if let Some(v) = env("SHEET_BRIDGE") {
+        options.echo_sheet.bridge_mm = v;
     }
     if let Some(v) = env("SHEET_REACH") {
         options.echo_sheet.reach_mm = v;

@@ -78,6 +78,11 @@ pub struct Args {
     /// gaps and extrapolates more at the edges).
     #[arg(long, default_value_t = SheetOptions::default().reach_mm)]
     pub ridge_reach: f64,
+    /// Ridge sheet: also bridge gaps between its pieces over up to this many mm in the sheet's plane,
+    /// where points surround the gap on a common plane (no overhang at rims, no ramps across folds or
+    /// steps); 0 = off.
+    #[arg(long, default_value_t = SheetOptions::default().bridge_mm)]
+    pub ridge_bridge: f64,
     /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all. Default: 5 for the
     /// iso sheet, 2 for the ridge sheet.
     #[arg(long)]
@@ -232,6 +237,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             anyhow::bail!("{flag} must be a positive number of mm, got {mm}");
         }
     }
+    if !(args.ridge_bridge.is_finite() && args.ridge_bridge >= 0.0) {
+        anyhow::bail!(
+            "--ridge-bridge must be 0 or a positive number of mm, got {}",
+            args.ridge_bridge
+        );
+    }
     let sequence = io::read_sequence(&seg.sequence)?;
     let calibration = io::read_calibration(&seg.config)?;
     let init = match &seg.init {
@@ -266,6 +277,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         echo_sheet: SheetOptions {
             smoothing_mm: args.ridge_smoothing,
             reach_mm: args.ridge_reach,
+            bridge_mm: args.ridge_bridge,
             ..SheetOptions::default()
         },
         min_component_area_mm2: match args.min_component_area {

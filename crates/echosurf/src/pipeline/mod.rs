@@ -120,7 +120,8 @@ pub const DEFAULT_SMOOTHING_MM: f64 = 2.0;
 /// duck: 5 mm^2 takes the mesh from 44 to 15 components and the proximal completeness within 20 degrees
 /// of the beam from 1.000 / 0.988 (outer / inner wall) to 1.000 / 0.984; 20 mm^2 leaves 10.
 pub const DEFAULT_MIN_COMPONENT_AREA_MM2: f64 = 5.0;
-/// The same for the echo-ridge sheet. Measured on the simulated duck (seed 1; `examples/
+/// The same for the echo-ridge sheet. Measured before gap bridging (`SheetOptions::bridge_mm`) on the
+/// simulated duck (seed 1; `examples/
 /// completeness_by_angle.rs`, SHEET=ridge): 0.5 / 1 / 2 / 5 mm^2 leave 57 / 33 / 20 / 10 components, and
 /// of the inner wall's probe side within 20 degrees of the beam 0.986 / 0.982 / 0.981 / 0.965 within
 /// 1 mm (the outer wall's stays 0.998-0.999); hand: 0.992 / 0.992 / 0.990 / 0.983.
@@ -158,11 +159,11 @@ impl Sheet {
 /// `Sheet::Auto` draws the ridge sheet when at least this share of the proximal sheet reached a ridge.
 /// Measured (`RidgeStats`, release build, defaults): simulated duck and hand at low / default / high noise
 /// (`echosurf bench routes`) 0.889 / 0.908 / 0.925 and 0.963 / 0.962 / 0.943, where the ridge sheet is
-/// the more accurate in every case (mean 0.15-0.29 mm against 0.42-0.63 mm); sphere, ellipsoid and
-/// torus at the three noise levels 0.890-0.955 (ridge mean 0.13-0.31 mm); the real N-wire sweep
+/// the more accurate in every case (mean 0.16-0.29 mm against 0.42-0.63 mm); sphere, ellipsoid and
+/// torus at the three noise levels 0.890-0.955 (ridge mean 0.13-0.30 mm); the real N-wire sweep
 /// 0.891 (wire echoes); the real spine sweep (NN_MEAN config) 0.597: tissue as bright as the iso-level
 /// over the bone, where the field still rises 1.5 mm past the sheath and the ridge sheet is lacy
-/// (27 pieces against the iso-surface's 5).
+/// (20 pieces against the iso-surface's 5).
 pub const AUTO_RIDGE_MIN_REACHED_SHARE: f64 = 0.8;
 
 /// The sheet drawn for one iso-level, and why.
