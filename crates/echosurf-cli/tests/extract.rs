@@ -248,31 +248,21 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
         medians[0], medians[1]
     );
     assert!(medians[1] < 0.8 * medians[0], "{medians:?}");
-    let bad = extract(
-        &seq,
-        &config,
-        &dir.path().join("bad.ply"),
-        &["--sheet", "middle"],
-    );
-    assert!(!bad.status.success());
-    assert!(String::from_utf8_lossy(&bad.stderr).contains("--sheet middle"));
-    let bad = extract(
-        &seq,
-        &config,
-        &dir.path().join("bad.ply"),
-        &["--sheet", "ridge", "--ridge-reach", "0"],
-    );
-    assert!(!bad.status.success());
-    assert!(String::from_utf8_lossy(&bad.stderr).contains("--ridge-reach must be a positive"));
-    let bad = extract(
-        &seq,
-        &config,
-        &dir.path().join("bad.ply"),
-        &["--ridge-bridge", "nan"],
-    );
-    assert!(!bad.status.success());
-    assert!(
-        String::from_utf8_lossy(&bad.stderr).contains("--ridge-bridge must be 0 or a positive")
-    );
+    for (args, message) in [
+        (&["--sheet", "middle"][..], "--sheet middle"),
+        (
+            &["--sheet", "ridge", "--ridge-reach", "0"][..],
+            "--ridge-reach must be a positive",
+        ),
+        (
+            &["--ridge-bridge", "nan"][..],
+            "--ridge-bridge must be 0 or a positive",
+        ),
+    ] {
+        let bad = extract(&seq, &config, &dir.path().join("bad.ply"), args);
+        assert!(!bad.status.success(), "{args:?}");
+        let err = String::from_utf8_lossy(&bad.stderr);
+        assert!(err.contains(message), "{args:?}: {err}");
+    }
     assert!(!dir.path().join("bad.ply").exists());
 }

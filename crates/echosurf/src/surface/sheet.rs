@@ -287,27 +287,12 @@ mod tests {
         // Points every 0.3 mm on the tilted plane z = 0.2 x over 12 x 12 mm, normals toward +z (the
         // probe), with a 1 mm wide strip missing across the whole plane and a 0.8 mm hole.
         let up = DVec3::new(-0.2, 0.0, 1.0).normalize();
-        let (mut points, mut normals) = (Vec::new(), Vec::new());
-        for i in -20..=20 {
-            for j in -20..=20 {
-                let (x, y) = (i as f64 * 0.3, j as f64 * 0.3);
-                let in_strip = (y - 1.0).abs() < 0.5;
-                let in_hole = DVec3::new(x + 3.0, y + 3.0, 0.0).length() < 0.4;
-                if !(in_strip || in_hole) {
-                    points.push(DVec3::new(x, y, 0.2 * x));
-                    normals.push(up);
-                }
-            }
-        }
-        let domain = SurfaceDomain {
-            bounds_min_mm: DVec3::splat(-10.0),
-            bounds_max_mm: DVec3::splat(10.0),
-            ..SurfaceDomain::default()
-        };
-        let surface = SurfaceOptions {
-            resolution_mm: 0.25,
-            ..SurfaceOptions::default()
-        };
+        let (points, normals) = grid_points(|x, y| {
+            let in_strip = (y - 1.0).abs() < 0.5;
+            let in_hole = DVec3::new(x + 3.0, y + 3.0, 0.0).length() < 0.4;
+            (!(in_strip || in_hole)).then_some((0.2 * x, up))
+        });
+        let (domain, surface) = lattice();
         let (mesh, _) = sheet_through_points(
             &points,
             &normals,
@@ -358,24 +343,24 @@ mod tests {
         assert!(sheet_through_points(&points, &normals, &domain, &surface, &bad).is_err());
     }
 
-    /// Points every 0.3 mm over x, y in [-6, 6] mm on `z = surface(x)` where `keep(x)`, with normals
-    /// `normal(x)`; the sheet through them with `bridge_mm`.
-    fn sheet_over(
-        surface: impl Fn(f64) -> f64,
-        normal: impl Fn(f64) -> DVec3,
-        keep: impl Fn(f64) -> bool,
-        bridge_mm: f64,
-    ) -> Mesh {
+    /// Points every 0.3 mm over x, y in [-6, 6] mm, at height and with the normal `at(x, y)` gives
+    /// (`None`: no point there).
+    fn grid_points(at: impl Fn(f64, f64) -> Option<(f64, DVec3)>) -> (Vec<DVec3>, Vec<DVec3>) {
         let (mut points, mut normals) = (Vec::new(), Vec::new());
         for i in -20..=20 {
             for j in -20..=20 {
                 let (x, y) = (i as f64 * 0.3, j as f64 * 0.3);
-                if keep(x) {
-                    points.push(DVec3::new(x, y, surface(x)));
-                    normals.push(normal(x));
+                if let Some((z, n)) = at(x, y) {
+                    points.push(DVec3::new(x, y, z));
+                    normals.push(n);
                 }
             }
         }
+        (points, normals)
+    }
+
+    /// The box and lattice the sheet tests extract in.
+    fn lattice() -> (SurfaceDomain, SurfaceOptions) {
         let domain = SurfaceDomain {
             bounds_min_mm: DVec3::splat(-10.0),
             bounds_max_mm: DVec3::splat(10.0),
@@ -385,6 +370,19 @@ mod tests {
             resolution_mm: 0.25,
             ..SurfaceOptions::default()
         };
+        (domain, surface)
+    }
+
+    /// The sheet with `bridge_mm` through the grid points on `z = surface(x)` where `keep(x)`, with
+    /// normals `normal(x)`.
+    fn sheet_over(
+        surface: impl Fn(f64) -> f64,
+        normal: impl Fn(f64) -> DVec3,
+        keep: impl Fn(f64) -> bool,
+        bridge_mm: f64,
+    ) -> Mesh {
+        let (points, normals) = grid_points(|x, _| keep(x).then(|| (surface(x), normal(x))));
+        let (domain, surface) = lattice();
         let options = SheetOptions {
             bridge_mm,
             ..SheetOptions::default()
@@ -424,16 +422,9 @@ mod tests {
         // A step: the two sides 1.3 mm apart in height. A spot midway lies within the reach of both
         // planes along their normals (0.65 mm) and between them across, but 0.65 mm off both (more than
         // BRIDGE_MAX_RMS_MM): not on a common plane, so no ramp is bridged there.
-        let (mut points, mut normals) = (Vec::new(), Vec::new());
-        for i in -20..=20 {
-            for j in -20..=20 {
-                let (x, y) = (i as f64 * 0.3, j as f64 * 0.3);
-                if x.abs() > 1.0 {
-                    points.push(DVec3::new(x, y, if x < 0.0 { 0.0 } else { 1.3 }));
-                    normals.push(DVec3::Z);
-                }
-            }
-        }
+        let (points, normals) = grid_points(|x, _| {
+            (x.abs() > 1.0).then_some((if x < 0.0 { 0.0 } else { 1.3 }, DVec3::Z))
+        });
         let step = OrientedPointField::new(&points, &normals, 0.8, 0.75, 2.0).unwrap();
         assert!(step.at(DVec3::new(0.0, 0.0, 0.65)).0.is_nan());
         let level: Vec<DVec3> = points.iter().map(|p| DVec3::new(p.x, p.y, 0.0)).collect();
