@@ -179,6 +179,18 @@ pub struct SheetUsed {
     pub min_component_area_mm2: f64,
 }
 
+impl SheetUsed {
+    /// The iso-surface at `level`, no ridge searched, nothing removed: where every level starts.
+    fn iso_surface(level: f64) -> SheetUsed {
+        SheetUsed {
+            level,
+            sheet: Sheet::Iso,
+            ridge_reached_share: None,
+            min_component_area_mm2: 0.0,
+        }
+    }
+}
+
 /// The beam direction of the frame nearest a point (among frames whose image the point projects into).
 struct FrameBeams {
     /// World -> image, image -> world, unit beam direction (the image's +v axis) per frame.
@@ -653,12 +665,7 @@ pub fn extract(
     })?;
     let mut sheets: Vec<SheetUsed> = levels
         .iter()
-        .map(|&level| SheetUsed {
-            level,
-            sheet: Sheet::Iso,
-            ridge_reached_share: None,
-            min_component_area_mm2: 0.0,
-        })
+        .map(|&level| SheetUsed::iso_surface(level))
         .collect();
     if options.sheet != Sheet::Iso {
         let beams = FrameBeams::new(sequence, &prepared.poses, trust_distance_mm);

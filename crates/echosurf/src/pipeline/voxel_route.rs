@@ -289,12 +289,7 @@ pub(super) fn extract_voxel(
         surface: None,
         sheets: levels
             .iter()
-            .map(|&level| super::SheetUsed {
-                level,
-                sheet: super::Sheet::Iso,
-                ridge_reached_share: None,
-                min_component_area_mm2: 0.0,
-            })
+            .map(|&level| super::SheetUsed::iso_surface(level))
             .collect(),
         voxel: Some(voxel_report),
         total_seconds: meter.total_seconds(),
