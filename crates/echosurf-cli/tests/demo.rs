@@ -42,12 +42,26 @@ fn demo_writes_everything_and_its_ridge_sheet_is_accurate() {
         number_after("p95"),
     );
     assert!(mean <= 0.30 && p95 <= 0.60, "mean {mean} p95 {p95}");
+    // The weaker echoes' ridges fill the sheet (`WeakEchoes`): measured 93.2 % of the swept walls
+    // facing the beam within 30 degrees in 11 pieces, against 90.6 % in 15 without them.
+    let within_30 = number_after("of the walls,");
+    let pieces = number_after("triangles,");
+    assert!(
+        within_30 >= 92.0 && pieces <= 13.0,
+        "{within_30} % in {pieces} pieces"
+    );
     let mesh = echosurf::io::read_mesh(&out.join("duck_surface.ply")).unwrap();
     assert!(mesh.topology().is_oriented_manifold());
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("duck_report.json")).unwrap()).unwrap();
     assert_eq!(report["parameters"]["sheet"], "Auto");
     assert_eq!(report["sheets"][0]["sheet"], "EchoRidge");
+    let weak = report["sheets"][0]["weak_ridge_level"].as_f64().unwrap();
+    let (background, iso) = (
+        report["levels"]["background"].as_f64().unwrap(),
+        report["parameters"]["iso_levels"][0].as_f64().unwrap(),
+    );
+    assert!(background < weak && weak < iso, "{background} {weak} {iso}");
     let share = report["sheets"][0]["ridge_reached_share"].as_f64().unwrap();
     assert!(
         share >= echosurf::pipeline::AUTO_RIDGE_MIN_REACHED_SHARE,

@@ -258,6 +258,14 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
             &["--ridge-bridge", "nan"][..],
             "--ridge-bridge must be 0 or a positive",
         ),
+        (
+            &["--ridge-weak", "1"][..],
+            "--ridge-weak must be a fraction",
+        ),
+        (
+            &["--ridge-weak-reach", "0"][..],
+            "--ridge-weak-reach must be a positive",
+        ),
     ] {
         let bad = extract(&seq, &config, &dir.path().join("bad.ply"), args);
         assert!(!bad.status.success(), "{args:?}");

@@ -50,6 +50,12 @@ fn main() -> echosurf::Result<()> {
     if let Some(v) = env("SHEET_REACH") {
         options.echo_sheet.reach_mm = v;
     }
+    if let Some(v) = env("WEAK") {
+        options.weak_echoes.level_fraction = v;
+    }
+    if let Some(v) = env("WEAK_REACH") {
+        options.weak_echoes.reach_mm = v;
+    }
     if let Some(v) = env("HOLE") {
         options.echo_sheet.max_hole_perimeter_mm = v;
     }

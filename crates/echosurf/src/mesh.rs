@@ -329,6 +329,48 @@ impl Mesh {
         filled
     }
 
+    /// Per vertex, whether it lies within `reach_mm` of a vertex flagged in `seeds` (one per vertex)
+    /// along the mesh's edges (shortest path, Dijkstra). Growing along edges rather than through space
+    /// keeps the growth on the surface it starts from: a nearby sheet that is not connected to a seed
+    /// stays out.
+    pub fn within_reach_along_edges(&self, seeds: &[bool], reach_mm: f64) -> Vec<bool> {
+        let n = self.vertices.len();
+        let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
+        for t in self
+            .triangles
+            .iter()
+            .filter(|t| t.iter().all(|&i| (i as usize) < n))
+        {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                neighbours[a as usize].push(b);
+                neighbours[b as usize].push(a);
+            }
+        }
+        // Non-negative f64 bit patterns order like the values, so the heap can hold them as u64.
+        let mut distance = vec![f64::INFINITY; n];
+        let mut heap = std::collections::BinaryHeap::new();
+        for (i, _) in seeds.iter().enumerate().take(n).filter(|(_, s)| **s) {
+            distance[i] = 0.0;
+            heap.push(std::cmp::Reverse((0u64, i)));
+        }
+        while let Some(std::cmp::Reverse((bits, i))) = heap.pop() {
+            let d = f64::from_bits(bits);
+            if d > distance[i] {
+                continue;
+            }
+            for &j in &neighbours[i] {
+                let j = j as usize;
+                let through = d + self.vertices[i].distance(self.vertices[j]);
+                if through <= reach_mm && through < distance[j] {
+                    distance[j] = through;
+                    heap.push(std::cmp::Reverse((through.to_bits(), j)));
+                }
+            }
+        }
+        distance.iter().map(|d| d.is_finite()).collect()
+    }
+
     /// Keeps the triangles whose flag in `keep` (one per triangle) is set, and the vertices they use
     /// (renumbered in order of first use). Returns the triangles removed.
     pub fn retain_triangles(&mut self, keep: &[bool]) -> usize {
@@ -562,6 +604,33 @@ mod tests {
         assert_eq!(mesh.topology().boundary_edges, 24);
         assert!((mesh.area_mm2() - 36.0).abs() < 1e-12);
         assert_eq!(mesh.fill_small_holes(100.0), 0);
+    }
+
+    #[test]
+    fn reach_along_edges_is_a_shortest_path_on_the_surface() {
+        // A 6 x 6 unit grid with a wall of missing squares at column 2, rows 0-4: from the seed at
+        // (0, 0), vertex (3, 0) lies 3 mm away in space but 11.8 mm along the edges, around the wall's
+        // end at row 5: two square diagonals to (2, 2), up to (2, 5), across, and down to (3, 0).
+        let holes: Vec<(u32, u32)> = (0..5).map(|j| (2, j)).collect();
+        let mesh = grid_with_holes(6, &holes);
+        let at = |i: usize, j: usize| j * 7 + i;
+        let mut seeds = vec![false; mesh.vertices.len()];
+        seeds[at(0, 0)] = true;
+        let reach = |mm: f64| mesh.within_reach_along_edges(&seeds, mm);
+        // Straight along the bottom row: exactly 2 mm to (2, 0), which the wall's left edge still holds.
+        assert!(reach(2.0)[at(2, 0)] && !reach(1.999)[at(2, 0)]);
+        // The diagonal of a square (the grid's triangles split them along (i, j) -> (i + 1, j + 1)).
+        assert!(reach(2f64.sqrt())[at(1, 1)] && !reach(1.414)[at(1, 1)]);
+        // Across the wall: only along the path around it.
+        let around = 2.0 * 2f64.sqrt() + 3.0 + 1.0 + 5.0;
+        assert!(!reach(around - 1e-6)[at(3, 0)] && reach(around + 1e-9)[at(3, 0)]);
+        // Only seeds at zero reach; nothing at all without seeds.
+        assert_eq!(reach(0.0).iter().filter(|&&k| k).count(), 1);
+        assert!(
+            !mesh
+                .within_reach_along_edges(&vec![false; mesh.vertices.len()], 100.0)
+                .contains(&true)
+        );
     }
 
     fn tetrahedron() -> Mesh {

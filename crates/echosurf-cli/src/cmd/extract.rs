@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use echosurf::io::{self, ReferenceChoice};
 use echosurf::pipeline::{
-    self, ExtractOptions, ExtractOutput, IsoLevels, Method, Sheet, VoxelRouteOptions,
+    self, ExtractOptions, ExtractOutput, IsoLevels, Method, Sheet, VoxelRouteOptions, WeakEchoes,
 };
 use echosurf::rbf::FitOptions;
 use echosurf::render::{RenderOptions, render_views, write_png};
@@ -83,6 +83,15 @@ pub struct Args {
     /// steps); 0 = off.
     #[arg(long, default_value_t = SheetOptions::default().bridge_mm)]
     pub ridge_bridge: f64,
+    /// Ridge sheet: also take the ridges of weaker echoes, whose peak passes a lower level this
+    /// fraction of the way from the iso-level down to the background, where they continue the ridge of
+    /// a strong echo (hysteresis: fills the sheet between frames and along walls turning from the beam);
+    /// 0 = off.
+    #[arg(long, default_value_t = WeakEchoes::default().level_fraction)]
+    pub ridge_weak: f64,
+    /// Ridge sheet: how far (mm) a weak echo's ridge may continue from a strong one.
+    #[arg(long, default_value_t = WeakEchoes::default().reach_mm)]
+    pub ridge_weak_reach: f64,
     /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all. Default: 5 for the
     /// iso sheet, 2 for the ridge sheet.
     #[arg(long)]
@@ -199,7 +208,11 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
         Sheet::EchoRidge => "ridge",
         _ => "iso",
     };
-    match (asked, used.ridge_reached_share) {
+    let weak = used
+        .weak_ridge_level
+        .map(|l| format!(", extended by weaker echoes down to {l:.1}"))
+        .unwrap_or_default();
+    let why = match (asked, used.ridge_reached_share) {
         (Sheet::Auto, Some(share)) => format!(
             "{name} sheet (auto: {:.0} % of the probe side reached an echo ridge, {} {:.0} %)",
             100.0 * share,
@@ -211,7 +224,8 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
             100.0 * echosurf::pipeline::AUTO_RIDGE_MIN_REACHED_SHARE
         ),
         _ => format!("{name} sheet"),
-    }
+    };
+    why + &weak
 }
 
 pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
@@ -232,6 +246,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for (flag, mm) in [
         ("--ridge-smoothing", args.ridge_smoothing),
         ("--ridge-reach", args.ridge_reach),
+        ("--ridge-weak-reach", args.ridge_weak_reach),
     ] {
         if !(mm.is_finite() && mm > 0.0) {
             anyhow::bail!("{flag} must be a positive number of mm, got {mm}");
@@ -241,6 +256,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         anyhow::bail!(
             "--ridge-bridge must be 0 or a positive number of mm, got {}",
             args.ridge_bridge
+        );
+    }
+    if !(args.ridge_weak.is_finite() && (0.0..1.0).contains(&args.ridge_weak)) {
+        anyhow::bail!(
+            "--ridge-weak must be a fraction in [0, 1) of the way from the iso-level to the background, got {}",
+            args.ridge_weak
         );
     }
     let sequence = io::read_sequence(&seg.sequence)?;
@@ -279,6 +300,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             reach_mm: args.ridge_reach,
             bridge_mm: args.ridge_bridge,
             ..SheetOptions::default()
+        },
+        weak_echoes: WeakEchoes {
+            level_fraction: args.ridge_weak,
+            reach_mm: args.ridge_weak_reach,
         },
         min_component_area_mm2: match args.min_component_area {
             Some(a) if !(a.is_finite() && a >= 0.0) => {

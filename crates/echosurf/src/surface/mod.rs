@@ -23,7 +23,7 @@ use rayon::prelude::*;
 use crate::mesh::Mesh;
 
 use crate::{Error, Result};
-pub use ridge::{RidgeOptions, RidgeStats, proximal_sheet_on_ridge};
+pub use ridge::{RidgeOptions, RidgeStats, WeakRidge, extend_ridge_sheet, proximal_sheet_on_ridge};
 pub use sheet::{SheetOptions, sheet_through_points};
 
 /// A scalar field the surfacer can sample: values and gradients at many points at once (batches let a
