@@ -82,7 +82,12 @@ fn main() -> echosurf::Result<()> {
     let t = std::time::Instant::now();
     let out = pipeline::extract(
         &sim.sequence,
-        Some(&sim.calibration_written),
+        // TRUECAL=1: the calibration without the simulated calibration error.
+        Some(if env("TRUECAL") == Some(1.0) {
+            &sim.calibration_true
+        } else {
+            &sim.calibration_written
+        }),
         &options,
         &NoProgress,
     )?;
