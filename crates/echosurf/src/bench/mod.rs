@@ -256,6 +256,8 @@ pub struct RouteResult {
     /// of a sweeping frame's beam: the pieces a surface of the echoing walls can at best come in (the
     /// parts of a wall between them face the beam too steeply to echo). Same for every route of a case.
     pub truth_patches_strong_echo: usize,
+    /// How the mesh's pieces lie over those patches.
+    pub patch_coverage: PatchCoverage,
     /// MESH -> TRUTH (mm); NaN when the route produced no surface.
     pub accuracy_mean_mm: f64,
     pub accuracy_p95_mm: f64,
@@ -301,6 +303,69 @@ pub fn masked_patches(mesh: &Mesh, mask: &[bool], min_area_mm2: f64) -> usize {
     }
 }
 
+/// How a surface's pieces lie over the truth's patches (those of [`masked_patches`]): a patch is whole
+/// when exactly one piece of the mesh comes within 1 mm of at least `min_area_mm2` of it, split when two
+/// or more do, missed when none does. This is the pipeline issue's "at most one mesh component per true
+/// wall", read per echoing patch of a wall.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct PatchCoverage {
+    pub whole: usize,
+    pub split: usize,
+    pub missed: usize,
+}
+
+/// [`PatchCoverage`] of `mesh` over the patches of `truth`'s triangles flagged in `mask`. Each truth
+/// triangle's area goes to the piece holding the mesh triangle nearest its centroid (within 1 mm).
+pub fn patch_coverage(
+    mesh: &Mesh,
+    truth: &Mesh,
+    mask: &[bool],
+    min_area_mm2: f64,
+) -> PatchCoverage {
+    use rayon::prelude::*;
+    let mut patches = truth.clone();
+    patches.retain_triangles(mask);
+    patches.remove_small_components(min_area_mm2);
+    let patch_of = patches.triangle_components();
+    let piece_of = mesh.triangle_components();
+    let bvh = crate::metrics::TriangleBvh::new(mesh);
+    let nearest_piece: Vec<Option<usize>> = patches
+        .triangles
+        .par_iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| patches.vertices[i as usize]);
+            bvh.nearest((a + b + c) / 3.0)
+                .filter(|n| n.distance_mm <= 1.0)
+                .map(|n| piece_of[n.triangle as usize])
+        })
+        .collect();
+    // Covered area per (patch, piece), in a sorted map so the result does not depend on hashing.
+    let mut covered: std::collections::BTreeMap<(usize, usize), f64> = Default::default();
+    for (f, piece) in nearest_piece.iter().enumerate() {
+        if let Some(piece) = piece {
+            let [a, b, c] = patches.triangles[f].map(|i| patches.vertices[i as usize]);
+            *covered.entry((patch_of[f], *piece)).or_default() +=
+                0.5 * (b - a).cross(c - a).length();
+        }
+    }
+    let mut pieces_over: std::collections::BTreeMap<usize, usize> =
+        patch_of.iter().map(|&p| (p, 0)).collect();
+    for (&(patch, _), &area) in &covered {
+        if area >= min_area_mm2 {
+            *pieces_over.entry(patch).or_default() += 1;
+        }
+    }
+    let mut coverage = PatchCoverage::default();
+    for &n in pieces_over.values() {
+        match n {
+            0 => coverage.missed += 1,
+            1 => coverage.whole += 1,
+            _ => coverage.split += 1,
+        }
+    }
+    coverage
+}
+
 /// The routes compared, with the sheet each outputs: the RBF route's iso-surface (the paper's and
 /// `extract`'s default), its echo-ridge sheet (`--sheet ridge`), and the voxel route.
 pub const ROUTES: [(&str, Sheet); 3] = [
@@ -339,7 +404,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
         truth_mask: Some(mask),
     };
     let compare_strong = strong_mask.iter().any(|&m| m).then(|| CompareOptions {
-        truth_mask: Some(strong_mask),
+        truth_mask: Some(strong_mask.clone()),
         ..compare.clone()
     });
     let mut results = Vec::new();
@@ -375,6 +440,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
             triangles: 0,
             components: 0,
             truth_patches_strong_echo: truth_patches,
+            patch_coverage: PatchCoverage::default(),
             accuracy_mean_mm: f64::NAN,
             accuracy_p95_mm: f64::NAN,
             completeness_1mm: 0.0,
@@ -406,6 +472,8 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
                         }
                         Err(e) => result.error = Some(e.to_string()),
                     }
+                    result.patch_coverage =
+                        patch_coverage(&mesh, &case.truth, &strong_mask, MIN_PATCH_AREA_MM2);
                     if let Some(strong) = &compare_strong {
                         match compare_meshes(&mesh, &case.truth, strong) {
                             Ok(c) => result.completeness_strong_echo_1mm = c.completeness_1mm,
@@ -427,8 +495,8 @@ fn mb(bytes: Option<u64>) -> String {
 /// The results as a markdown table, one row per case and route.
 pub fn markdown_table(results: &[RouteResult]) -> String {
     let mut out = String::from(
-        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | completeness, <= 30 deg (1 mm) | components | truth patches, <= 30 deg | triangles | time (s) | peak extra memory (MB) |\n\
-         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | completeness, <= 30 deg (1 mm) | components | truth patches, <= 30 deg | patches whole / split / missed | triangles | time (s) | peak extra memory (MB) |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in results {
         let note = r
@@ -437,7 +505,7 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
             .map(|e| format!(" ({e})"))
             .unwrap_or_default();
         out.push_str(&format!(
-            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {:.1} % | {} | {} | {} | {:.2} | {} |\n",
+            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {:.1} % | {} | {} | {} / {} / {} | {} | {:.2} | {} |\n",
             r.case,
             r.route,
             note,
@@ -448,6 +516,9 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
             100.0 * r.completeness_strong_echo_1mm,
             r.components,
             r.truth_patches_strong_echo,
+            r.patch_coverage.whole,
+            r.patch_coverage.split,
+            r.patch_coverage.missed,
             r.triangles,
             r.seconds,
             mb(r.peak_extra_bytes),
@@ -531,6 +602,70 @@ pub fn fit_sizes(max: usize) -> Vec<usize> {
 mod tests {
     use super::*;
     use crate::metrics::shapes::icosphere;
+
+    /// `nx` x `ny` unit squares in the plane z = `z`, from (`x0`, 0).
+    fn squares(x0: f64, z: f64, nx: u32, ny: u32) -> Mesh {
+        let mut mesh = Mesh::default();
+        for j in 0..=ny {
+            for i in 0..=nx {
+                mesh.vertices.push(DVec3::new(x0 + i as f64, j as f64, z));
+            }
+        }
+        let at = |i: u32, j: u32| j * (nx + 1) + i;
+        for j in 0..ny {
+            for i in 0..nx {
+                mesh.triangles
+                    .push([at(i, j), at(i + 1, j), at(i + 1, j + 1)]);
+                mesh.triangles
+                    .push([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
+            }
+        }
+        mesh
+    }
+
+    #[test]
+    fn patch_coverage_counts_the_pieces_over_each_patch() {
+        // Three 4 x 4 mm patches of truth.
+        let truth = Mesh::merged([
+            &squares(0.0, 0.0, 4, 4),
+            &squares(10.0, 0.0, 4, 4),
+            &squares(20.0, 0.0, 4, 4),
+        ]);
+        let all = vec![true; truth.triangles.len()];
+        // The first patch under one piece (0.5 mm above it) and a 1 mm^2 crumb (0.45 mm above it: nearest
+        // only to the 1 mm^2 of truth under it, too little to count);
+        // the second under two pieces of 2 x 4 mm; the third under nothing within 1 mm (2 mm above).
+        let mesh = Mesh::merged([
+            &squares(0.0, 0.5, 4, 4),
+            &squares(0.0, 0.45, 1, 1),
+            &squares(10.0, 0.5, 2, 4),
+            &squares(12.0, 0.5, 2, 4),
+            &squares(20.0, 2.0, 4, 4),
+        ]);
+        let coverage = patch_coverage(&mesh, &truth, &all, 2.0);
+        assert_eq!(
+            coverage,
+            PatchCoverage {
+                whole: 1,
+                split: 1,
+                missed: 1
+            }
+        );
+        // Patches below the smallest area are not counted at all; a mask removes the others.
+        assert_eq!(
+            patch_coverage(&mesh, &truth, &all, 20.0),
+            PatchCoverage::default()
+        );
+        let first_only: Vec<bool> = (0..truth.triangles.len()).map(|f| f < 32).collect();
+        assert_eq!(
+            patch_coverage(&mesh, &truth, &first_only, 2.0),
+            PatchCoverage {
+                whole: 1,
+                split: 0,
+                missed: 0
+            }
+        );
+    }
 
     #[test]
     fn fit_sizes_are_one_three_per_decade() {
