@@ -335,18 +335,7 @@ impl Mesh {
     /// stays out.
     pub fn within_reach_along_edges(&self, seeds: &[bool], reach_mm: f64) -> Vec<bool> {
         let n = self.vertices.len();
-        let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
-        for t in self
-            .triangles
-            .iter()
-            .filter(|t| t.iter().all(|&i| (i as usize) < n))
-        {
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                neighbours[a as usize].push(b);
-                neighbours[b as usize].push(a);
-            }
-        }
+        let neighbours = edge_neighbours(n, &self.triangles);
         // Non-negative f64 bit patterns order like the values, so the heap can hold them as u64.
         let mut distance = vec![f64::INFINITY; n];
         let mut heap = std::collections::BinaryHeap::new();
@@ -525,6 +514,24 @@ impl Mesh {
         }
         pinched
     }
+}
+
+/// Per vertex (of `vertex_count`), the vertices it shares a triangle edge with, once per triangle edge
+/// (an inner edge lists each end twice), in triangle order; triangles with an out-of-range vertex are
+/// skipped.
+pub(crate) fn edge_neighbours(vertex_count: usize, triangles: &[[u32; 3]]) -> Vec<Vec<u32>> {
+    let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); vertex_count];
+    for t in triangles
+        .iter()
+        .filter(|t| t.iter().all(|&i| (i as usize) < vertex_count))
+    {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            neighbours[a as usize].push(b);
+            neighbours[b as usize].push(a);
+        }
+    }
+    neighbours
 }
 
 #[cfg(test)]

@@ -171,7 +171,8 @@ pub struct WeakRidge {
 
 /// The echo-ridge sheet `sheet` (drawn by [`sheet_through_points`] through the ridge points of
 /// `weak.strong_level`'s iso-surface) redrawn through the ridges of the lower level `weak.weak_level`
-/// that continue it ([`ridge_points_extending`]). Between frames the fitted echo's peak sags, and along
+/// that continue it (strong ridge points near the sheet, and the weak ones within `weak.reach_mm` of
+/// them along the lower level's ridge sheet). Between frames the fitted echo's peak sags, and along
 /// a wall turning from the beam the echo fades; there the iso-level's sheath, and the sheet drawn from
 /// it, is lacy. The lower level's surface is followed from the sheet's vertices only, so weak blobs
 /// that touch no strong echo are never traced; its ridges are found wherever the echo's peak passes
@@ -354,14 +355,7 @@ fn snap_side(
     let reached = shift.iter().filter(|s| s.is_some()).count();
     // A vertex that found no maximum takes its neighbours' mean shift when they agree (within
     // `FILL_AGREEMENT_MM`: neighbours that reached different echoes must not be averaged between them).
-    let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
-    for t in &triangles {
-        for k in 0..3 {
-            let (a, b) = (t[k], t[(k + 1) % 3]);
-            neighbours[a as usize].push(b);
-            neighbours[b as usize].push(a);
-        }
-    }
+    let neighbours = crate::mesh::edge_neighbours(n, &triangles);
     for _ in 0..FILL_PASSES {
         let filled: Vec<Option<f64>> = (0..n)
             .map(|i| {
