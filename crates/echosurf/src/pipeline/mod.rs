@@ -110,6 +110,14 @@ impl Default for ExtractOptions {
     }
 }
 
+impl ExtractOptions {
+    /// Smallest piece kept of `sheet` (the sheet actually drawn): the user's, or the sheet's default.
+    pub fn min_component_area_for(&self, sheet: Sheet) -> f64 {
+        self.min_component_area_mm2
+            .unwrap_or(sheet.default_min_component_area_mm2())
+    }
+}
+
 /// Hysteresis for the echo-ridge sheet ([`extend_ridge_sheet`]): the ridges of weaker echoes, whose
 /// peak passes a lower level but not the iso-level, are added where they continue a strong echo's
 /// ridge. They fill the sheet between frames (where the fitted echo's peak sags) and along walls
@@ -742,9 +750,7 @@ pub fn extract(
                         strong_level: used.level,
                         weak_level,
                         reach_mm: options.weak_echoes.reach_mm,
-                        min_seed_area_mm2: options
-                            .min_component_area_mm2
-                            .unwrap_or(Sheet::EchoRidge.default_min_component_area_mm2()),
+                        min_seed_area_mm2: options.min_component_area_for(Sheet::EchoRidge),
                     };
                     sheet = extend_ridge_sheet(
                         sheet,
@@ -764,9 +770,7 @@ pub fn extract(
         })?;
     }
     for (mesh, used) in meshes.iter_mut().zip(&mut sheets) {
-        used.min_component_area_mm2 = options
-            .min_component_area_mm2
-            .unwrap_or(used.sheet.default_min_component_area_mm2());
+        used.min_component_area_mm2 = options.min_component_area_for(used.sheet);
         if used.min_component_area_mm2 > 0.0 {
             mesh.remove_small_components(used.min_component_area_mm2);
         }
