@@ -47,11 +47,14 @@ impl Mesh {
     pub fn area_mm2(&self) -> f64 {
         self.triangles
             .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| self.vertices[i as usize]);
-                0.5 * (b - a).cross(c - a).length()
-            })
+            .map(|&t| self.triangle_area_mm2(t))
             .sum()
+    }
+
+    /// Area of triangle `t` (vertex indices into this mesh) in mm^2.
+    pub fn triangle_area_mm2(&self, t: [u32; 3]) -> f64 {
+        let [a, b, c] = t.map(|i| self.vertices[i as usize]);
+        0.5 * (b - a).cross(c - a).length()
     }
 
     /// Axis-aligned bounds of the vertices, `None` for a mesh without vertices.
@@ -230,8 +233,7 @@ impl Mesh {
         let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
         for (f, t) in self.triangles.iter().enumerate() {
             if valid(t) {
-                let [a, b, c] = t.map(|i| self.vertices[i as usize]);
-                component_area[component[f]] += 0.5 * (b - a).cross(c - a).length();
+                component_area[component[f]] += self.triangle_area_mm2(*t);
             }
         }
         let keep: Vec<bool> = (0..self.triangles.len())

@@ -291,11 +291,22 @@ pub const STRONG_ECHO_DEG: f64 = 30.0;
 /// smallest piece.
 pub const MIN_PATCH_AREA_MM2: f64 = crate::pipeline::DEFAULT_RIDGE_MIN_COMPONENT_AREA_MM2;
 
-/// Connected patches of `mesh`'s triangles flagged in `mask`, of at least `min_area_mm2` each.
-pub fn masked_patches(mesh: &Mesh, mask: &[bool], min_area_mm2: f64) -> usize {
+/// The triangles of `mesh` flagged in `mask`, without the connected patches smaller than
+/// `min_area_mm2`.
+pub fn patches_of(mesh: &Mesh, mask: &[bool], min_area_mm2: f64) -> Mesh {
     let mut patches = mesh.clone();
     patches.retain_triangles(mask);
     patches.remove_small_components(min_area_mm2);
+    patches
+}
+
+/// Connected patches of `mesh`'s triangles flagged in `mask`, of at least `min_area_mm2` each.
+pub fn masked_patches(mesh: &Mesh, mask: &[bool], min_area_mm2: f64) -> usize {
+    patch_count(&patches_of(mesh, mask, min_area_mm2))
+}
+
+/// Connected pieces of `patches`.
+fn patch_count(patches: &Mesh) -> usize {
     if patches.is_empty() {
         0
     } else {
@@ -314,18 +325,10 @@ pub struct PatchCoverage {
     pub missed: usize,
 }
 
-/// [`PatchCoverage`] of `mesh` over the patches of `truth`'s triangles flagged in `mask`. Each truth
-/// triangle's area goes to the piece holding the mesh triangle nearest its centroid (within 1 mm).
-pub fn patch_coverage(
-    mesh: &Mesh,
-    truth: &Mesh,
-    mask: &[bool],
-    min_area_mm2: f64,
-) -> PatchCoverage {
+/// [`PatchCoverage`] of `mesh` over `patches` (from [`patches_of`] with the same `min_area_mm2`). Each
+/// truth triangle's area goes to the piece holding the mesh triangle nearest its centroid (within 1 mm).
+pub fn patch_coverage(mesh: &Mesh, patches: &Mesh, min_area_mm2: f64) -> PatchCoverage {
     use rayon::prelude::*;
-    let mut patches = truth.clone();
-    patches.retain_triangles(mask);
-    patches.remove_small_components(min_area_mm2);
     let patch_of = patches.triangle_components();
     let piece_of = mesh.triangle_components();
     let bvh = crate::metrics::TriangleBvh::new(mesh);
@@ -343,9 +346,8 @@ pub fn patch_coverage(
     let mut covered: std::collections::BTreeMap<(usize, usize), f64> = Default::default();
     for (f, piece) in nearest_piece.iter().enumerate() {
         if let Some(piece) = piece {
-            let [a, b, c] = patches.triangles[f].map(|i| patches.vertices[i as usize]);
             *covered.entry((patch_of[f], *piece)).or_default() +=
-                0.5 * (b - a).cross(c - a).length();
+                patches.triangle_area_mm2(patches.triangles[f]);
         }
     }
     let mut pieces_over: std::collections::BTreeMap<usize, usize> =
@@ -395,7 +397,9 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
         )));
     }
     let strong_mask = facing_within(&cosines, STRONG_ECHO_DEG);
-    let truth_patches = masked_patches(&case.truth, &strong_mask, MIN_PATCH_AREA_MM2);
+    // The patches once per case, for their count and for every route's coverage of them.
+    let patches = patches_of(&case.truth, &strong_mask, MIN_PATCH_AREA_MM2);
+    let truth_patches = patch_count(&patches);
     let compare = CompareOptions {
         samples_per_mm2: if options.quick { 2.0 } else { 5.0 },
         min_samples: if options.quick { 2_000 } else { 20_000 },
@@ -404,7 +408,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
         truth_mask: Some(mask),
     };
     let compare_strong = strong_mask.iter().any(|&m| m).then(|| CompareOptions {
-        truth_mask: Some(strong_mask.clone()),
+        truth_mask: Some(strong_mask),
         ..compare.clone()
     });
     let mut results = Vec::new();
@@ -472,8 +476,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
                         }
                         Err(e) => result.error = Some(e.to_string()),
                     }
-                    result.patch_coverage =
-                        patch_coverage(&mesh, &case.truth, &strong_mask, MIN_PATCH_AREA_MM2);
+                    result.patch_coverage = patch_coverage(&mesh, &patches, MIN_PATCH_AREA_MM2);
                     if let Some(strong) = &compare_strong {
                         match compare_meshes(&mesh, &case.truth, strong) {
                             Ok(c) => result.completeness_strong_echo_1mm = c.completeness_1mm,
@@ -642,7 +645,7 @@ mod tests {
             &squares(12.0, 0.5, 2, 4),
             &squares(20.0, 2.0, 4, 4),
         ]);
-        let coverage = patch_coverage(&mesh, &truth, &all, 2.0);
+        let coverage = patch_coverage(&mesh, &patches_of(&truth, &all, 2.0), 2.0);
         assert_eq!(
             coverage,
             PatchCoverage {
@@ -653,12 +656,12 @@ mod tests {
         );
         // Patches below the smallest area are not counted at all; a mask removes the others.
         assert_eq!(
-            patch_coverage(&mesh, &truth, &all, 20.0),
+            patch_coverage(&mesh, &patches_of(&truth, &all, 20.0), 20.0),
             PatchCoverage::default()
         );
         let first_only: Vec<bool> = (0..truth.triangles.len()).map(|f| f < 32).collect();
         assert_eq!(
-            patch_coverage(&mesh, &truth, &first_only, 2.0),
+            patch_coverage(&mesh, &patches_of(&truth, &first_only, 2.0), 2.0),
             PatchCoverage {
                 whole: 1,
                 split: 0,

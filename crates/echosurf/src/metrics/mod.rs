@@ -232,11 +232,6 @@ struct Samples {
     area_mm2: f64,
 }
 
-fn triangle_area(mesh: &Mesh, t: [u32; 3]) -> f64 {
-    let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-    0.5 * (b - a).cross(c - a).length()
-}
-
 /// Area-proportional samples on the selected triangles. Triangle `i` gets
 /// `floor(N * A_end / A) - floor(N * A_start / A)` points (cumulative areas), so counts follow the area
 /// exactly on aggregate with no random count noise; positions use sqrt-barycentric coordinates, uniform
@@ -251,7 +246,7 @@ fn sample_surface(
         .triangles
         .iter()
         .zip(selected)
-        .map(|(&t, &s)| if s { triangle_area(mesh, t) } else { 0.0 })
+        .map(|(&t, &s)| if s { mesh.triangle_area_mm2(t) } else { 0.0 })
         .collect();
     let total: f64 = areas.iter().sum();
     if total <= 0.0 || !total.is_finite() {
