@@ -3,7 +3,7 @@
 //! angle between the truth's normal and the nearest sweeping frame's beam, and per facing sign (outward
 //! normal against the beam: the side facing the probe). Environment overrides: `MAXS` (sample budget),
 //! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`, `SHEET=iso|ridge` (default: auto, as `extract`),
-//! `MINCOMP` (smallest piece kept, mm^2), `CHAIN=1` (chained edgels), `BACK=1` (backward band pass), `SEED`, and for the ridge sheet
+//! `MINCOMP` (smallest piece kept, mm^2), `MINFRAMES` (least frames echoing a piece), `CHAIN=1` (chained edgels), `BACK=1` (backward band pass), `SEED`, and for the ridge sheet
 //! `SHEET_H` (smoothing mm), `SHEET_REACH` (mm), `SHEET_BRIDGE` (mm, 0 = off), `HOLE` (largest hole closed,
 //! perimeter mm).
 //! `cargo run --release --example completeness_by_angle -- duck [mesh.ply]`
@@ -63,6 +63,9 @@ fn main() -> echosurf::Result<()> {
         Ok("iso") => options.sheet = echosurf::pipeline::Sheet::Iso,
         Ok("ridge") => options.sheet = echosurf::pipeline::Sheet::EchoRidge,
         _ => {}
+    }
+    if let Some(v) = env("MINFRAMES") {
+        options.min_echo_frames = v as usize;
     }
     if let Some(v) = env("MINCOMP") {
         options.min_component_area_mm2 = Some(v);

@@ -362,6 +362,59 @@ impl Mesh {
         distance.iter().map(|d| d.is_finite()).collect()
     }
 
+    /// Removes the edge-connected components that fewer than `min_frames` frames back: a frame backs a
+    /// component when one of its echoes (`echoes[k]`, seen in frame `echo_frames[k]`) lies within
+    /// `radius_mm` of one of the component's vertices (for a surfacer's mesh, whose vertices lie a
+    /// lattice cell apart, about the distance to the surface). A wall is seen again and again as the probe
+    /// passes over it; a piece that one frame's speckle (or none: an overshoot of the fitted field)
+    /// made is not. Returns the components removed.
+    pub fn remove_components_seen_in_few_frames(
+        &mut self,
+        echoes: &[DVec3],
+        echo_frames: &[u32],
+        radius_mm: f64,
+        min_frames: usize,
+    ) -> usize {
+        if min_frames == 0 || self.triangles.is_empty() {
+            return 0;
+        }
+        let n = self.vertices.len();
+        let component = self.triangle_components();
+        let mut vertex_component = vec![usize::MAX; n];
+        for (f, t) in self.triangles.iter().enumerate() {
+            for &i in t.iter().filter(|&&i| (i as usize) < n) {
+                vertex_component[i as usize] = component[f];
+            }
+        }
+        let mut frames_seen: std::collections::HashMap<usize, Vec<u32>> =
+            std::collections::HashMap::new();
+        if let Some(buckets) = crate::spatial::PointBuckets::new(echoes, radius_mm) {
+            for (v, &c) in self.vertices.iter().zip(&vertex_component) {
+                if c == usize::MAX {
+                    continue;
+                }
+                let seen = frames_seen.entry(c).or_default();
+                if seen.len() >= min_frames {
+                    continue;
+                }
+                buckets.visit_within(*v, radius_mm, &mut |k, _| {
+                    let frame = echo_frames[k];
+                    if let Err(at) = seen.binary_search(&frame) {
+                        seen.insert(at, frame);
+                    }
+                    seen.len() < min_frames
+                });
+            }
+        }
+        let backed = |c: usize| frames_seen.get(&c).is_some_and(|s| s.len() >= min_frames);
+        let mut removed: Vec<usize> = component.iter().copied().filter(|&c| !backed(c)).collect();
+        removed.sort_unstable();
+        removed.dedup();
+        let keep: Vec<bool> = component.iter().map(|&c| backed(c)).collect();
+        self.retain_triangles(&keep);
+        removed.len()
+    }
+
     /// Keeps the triangles whose flag in `keep` (one per triangle) is set, and the vertices they use
     /// (renumbered in order of first use). Returns the triangles removed.
     pub fn retain_triangles(&mut self, keep: &[bool]) -> usize {
@@ -566,6 +619,62 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn pieces_that_too_few_frames_echo_are_removed() {
+        // Square A at the origin, square B 10 mm away.
+        let square = |x: f64| {
+            [
+                DVec3::new(x, 0.0, 0.0),
+                DVec3::new(x + 1.0, 0.0, 0.0),
+                DVec3::new(x + 1.0, 1.0, 0.0),
+                DVec3::new(x, 1.0, 0.0),
+            ]
+        };
+        let mesh = Mesh {
+            vertices: [square(0.0), square(10.0)].concat(),
+            normals: Vec::new(),
+            triangles: vec![[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]],
+        };
+        // A: echoes from frames 1, 2, 3 within 0.5 mm of a vertex (frame 2 twice; distances are taken
+        // to vertices, which the surfacer places a lattice cell apart). B: many echoes, all from frame 5,
+        // and one from frame 6 just beyond the radius. Far from both: frames 7, 8, 9.
+        let echoes = [
+            (DVec3::new(0.2, 0.2, 0.4), 1),
+            (DVec3::new(0.9, 0.1, -0.3), 2),
+            (DVec3::new(0.1, 0.9, 0.1), 2),
+            (DVec3::new(1.3, 1.0, 0.0), 3),
+            (DVec3::new(10.5, 0.5, 0.2), 5),
+            (DVec3::new(10.2, 0.9, -0.2), 5),
+            (DVec3::new(11.0, 1.0, 0.45), 5),
+            (DVec3::new(11.0, 1.0, 0.51), 6),
+            (DVec3::new(5.0, 5.0, 0.0), 7),
+            (DVec3::new(5.0, 5.0, 0.0), 8),
+            (DVec3::new(5.0, 5.0, 0.0), 9),
+        ];
+        let (points, frames): (Vec<DVec3>, Vec<u32>) = echoes.into_iter().unzip();
+        let remove = |min_frames: usize| {
+            let mut m = mesh.clone();
+            let removed = m.remove_components_seen_in_few_frames(&points, &frames, 0.5, min_frames);
+            (removed, m)
+        };
+        assert_eq!(remove(0).0, 0);
+        let (removed, one) = remove(1);
+        assert_eq!((removed, one.triangles.len()), (0, 4));
+        // B has one frame within reach: two frames leave only A.
+        let (removed, kept) = remove(2);
+        assert_eq!(removed, 1);
+        assert_eq!(kept.vertices, square(0.0).to_vec());
+        assert_eq!(kept.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+        assert_eq!(remove(3).0, 1);
+        // A has three frames: four remove everything.
+        let (removed, none) = remove(4);
+        assert_eq!(removed, 2);
+        assert!(none.is_empty());
+        // No echoes at all: no piece is backed.
+        let mut m = mesh.clone();
+        assert_eq!(m.remove_components_seen_in_few_frames(&[], &[], 0.5, 1), 2);
+    }
 
     /// A `k` x `k` grid of unit squares in z = 0 (two triangles each, facing +z) without the squares
     /// listed in `holes` (as (column, row)).

@@ -96,6 +96,10 @@ pub struct Args {
     /// iso sheet, 2 for the ridge sheet.
     #[arg(long)]
     pub min_component_area: Option<f64>,
+    /// Remove pieces of the surface that echoes from fewer than this many frames back (an echo: a kept
+    /// sample block at or above the surface's level within 1 mm); 0 keeps every piece.
+    #[arg(long, default_value_t = pipeline::DEFAULT_MIN_ECHO_FRAMES)]
+    pub min_echo_frames: usize,
     /// Seed of the random decimation (and of everything else random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -225,7 +229,15 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
         ),
         _ => format!("{name} sheet"),
     };
-    why + &weak
+    let unbacked = match used.pieces_without_echoes {
+        0 => String::new(),
+        n => format!(
+            ", {n} piece{} echoed by fewer than {} frames removed",
+            if n == 1 { "" } else { "s" },
+            used.min_echo_frames
+        ),
+    };
+    why + &weak + &unbacked
 }
 
 pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
@@ -305,6 +317,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             level_fraction: args.ridge_weak,
             reach_mm: args.ridge_weak_reach,
         },
+        min_echo_frames: args.min_echo_frames,
         min_component_area_mm2: match args.min_component_area {
             Some(a) if !(a.is_finite() && a >= 0.0) => {
                 anyhow::bail!("--min-component-area must be an area in mm^2 >= 0")

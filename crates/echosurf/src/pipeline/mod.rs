@@ -73,6 +73,10 @@ pub struct ExtractOptions {
     /// Connected pieces of a surface smaller than this (mm^2) are removed: isolated speckle blobs and
     /// shreds. 0 keeps everything; `None`: the sheet's default ([`Sheet::default_min_component_area_mm2`]).
     pub min_component_area_mm2: Option<f64>,
+    /// Pieces of a surface that echoes from fewer than this many frames back are removed (see
+    /// [`Mesh::remove_components_seen_in_few_frames`]; an echo is a kept sample block at or above the
+    /// surface's level within [`ECHO_SUPPORT_RADIUS_MM`]). 0 keeps every piece.
+    pub min_echo_frames: usize,
     /// Which surface to output: the iso-surface itself, or one sheet on each echo's ridge.
     pub sheet: Sheet,
     /// How the echo-ridge sheet is smoothed through the ridge points (`Sheet::EchoRidge` only).
@@ -101,6 +105,7 @@ impl Default for ExtractOptions {
             trust_distance_mm: None,
             sample_bin_mm: 0.4,
             echo_margin_mm: Some(DEFAULT_ECHO_MARGIN_MM),
+            min_echo_frames: DEFAULT_MIN_ECHO_FRAMES,
             sheet: Sheet::Auto,
             echo_sheet: SheetOptions::default(),
             weak_echoes: WeakEchoes::default(),
@@ -232,6 +237,9 @@ pub struct SheetUsed {
     pub weak_ridge_level: Option<f64>,
     /// Smallest piece kept (mm^2).
     pub min_component_area_mm2: f64,
+    /// Least frames whose echoes must back a piece (0: not checked), and the pieces removed for it.
+    pub min_echo_frames: usize,
+    pub pieces_without_echoes: usize,
 }
 
 impl SheetUsed {
@@ -243,6 +251,8 @@ impl SheetUsed {
             ridge_reached_share: None,
             weak_ridge_level: None,
             min_component_area_mm2: 0.0,
+            min_echo_frames: 0,
+            pieces_without_echoes: 0,
         }
     }
 }
@@ -289,6 +299,13 @@ impl FrameBeams {
         best.map(|(_, b)| b)
     }
 }
+
+/// How many frames' echoes must back a piece of surface by default (see
+/// [`ExtractOptions::min_echo_frames`]).
+pub const DEFAULT_MIN_ECHO_FRAMES: usize = 3;
+/// An echo backs a piece of surface within this distance of one of its vertices: about a speckle cell
+/// plus the fit's smoothing, well inside the distance to another wall.
+pub const ECHO_SUPPORT_RADIUS_MM: f64 = 1.0;
 
 /// Echo-priority margin `extract` uses unless told otherwise (see [`ExtractOptions::echo_margin_mm`]).
 pub const DEFAULT_ECHO_MARGIN_MM: f64 = 1.0;
@@ -769,12 +786,35 @@ pub fn extract(
             Ok::<_, Error>(())
         })?;
     }
-    for (mesh, used) in meshes.iter_mut().zip(&mut sheets) {
-        used.min_component_area_mm2 = options.min_component_area_for(used.sheet);
-        if used.min_component_area_mm2 > 0.0 {
-            mesh.remove_small_components(used.min_component_area_mm2);
+    // Small pieces, then pieces too few frames echo.
+    meter.stage("pieces", || {
+        for (mesh, used) in meshes.iter_mut().zip(&mut sheets) {
+            used.min_component_area_mm2 = options.min_component_area_for(used.sheet);
+            if used.min_component_area_mm2 > 0.0 {
+                mesh.remove_small_components(used.min_component_area_mm2);
+            }
+            used.min_echo_frames = options.min_echo_frames;
+            if options.min_echo_frames > 0 {
+                // All kept blocks, not just the fitted samples: the check must not depend on the
+                // sample budget.
+                let (echoes, frames): (Vec<DVec3>, Vec<u32>) = prepared
+                    .all
+                    .positions
+                    .iter()
+                    .zip(&prepared.all.intensities)
+                    .zip(&prepared.all.frame_of_sample)
+                    .filter(|((_, value), _)| **value as f64 >= used.level)
+                    .map(|((&p, _), &f)| (p, f))
+                    .unzip();
+                used.pieces_without_echoes = mesh.remove_components_seen_in_few_frames(
+                    &echoes,
+                    &frames,
+                    ECHO_SUPPORT_RADIUS_MM,
+                    options.min_echo_frames,
+                );
+            }
         }
-    }
+    });
     for (level, mesh) in levels.iter().zip(&meshes) {
         if mesh.is_empty() {
             warnings.push(format!(

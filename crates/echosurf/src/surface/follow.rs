@@ -11,8 +11,8 @@ use glam::DVec3;
 
 use super::ScalarField;
 use super::lattice::{EvalCounter, Ijk, KeyMap, KeySet, Lattice, add, corner_offset, pack, unpack};
-use super::trust::TrustRegion;
 use crate::Result;
+use crate::spatial::PointBuckets;
 
 /// Cached lattice values: a dense array for the full grid, a hash map when following the surface.
 #[derive(Debug)]
@@ -66,7 +66,7 @@ fn straddles(values: &[f64; 8], level: f64) -> bool {
     high != 0 && high != 8
 }
 
-fn trusted(lattice: &Lattice, trust: Option<&TrustRegion>, cell: Ijk) -> bool {
+fn trusted(lattice: &Lattice, trust: Option<&PointBuckets>, cell: Ijk) -> bool {
     trust.is_none_or(|t| t.contains(lattice.cell_centre(cell)))
 }
 
@@ -75,7 +75,7 @@ pub(crate) fn full_grid(
     field: &dyn ScalarField,
     lattice: &Lattice,
     levels: &[f64],
-    trust: Option<&TrustRegion>,
+    trust: Option<&PointBuckets>,
     counter: &mut EvalCounter,
 ) -> Result<CrossedCells> {
     let node_count = lattice.node_count();
@@ -128,7 +128,7 @@ pub(crate) fn full_grid(
 struct Follower<'a> {
     field: &'a dyn ScalarField,
     lattice: &'a Lattice,
-    trust: Option<&'a TrustRegion>,
+    trust: Option<&'a PointBuckets>,
     values: KeyMap<f64>,
     counter: &'a mut EvalCounter,
 }
@@ -213,7 +213,7 @@ pub(crate) fn follow_from_seeds(
     levels: &[f64],
     seeds: &[DVec3],
     search_radius_cells: u32,
-    trust: Option<&TrustRegion>,
+    trust: Option<&PointBuckets>,
     counter: &mut EvalCounter,
 ) -> Result<CrossedCells> {
     let mut seed_cells: Vec<u64> = seeds

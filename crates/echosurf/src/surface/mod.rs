@@ -15,7 +15,6 @@ mod rmt;
 mod sheet;
 #[cfg(test)]
 mod tests;
-mod trust;
 
 use glam::DVec3;
 use rayon::prelude::*;
@@ -180,7 +179,7 @@ pub fn extract_surfaces_with_stats(
         domain.bounds_max_mm,
         options.resolution_mm,
     )?;
-    let trust = trust::TrustRegion::new(&domain.trust_points, options.trust_distance_mm);
+    let trust = crate::spatial::PointBuckets::new(&domain.trust_points, options.trust_distance_mm);
     let mut counter = lattice::EvalCounter::default();
     let crossed = if domain.seeds.is_empty() {
         follow::full_grid(field, &lattice, levels, trust.as_ref(), &mut counter)?

@@ -10,13 +10,13 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::trust::TrustRegion;
 use super::{
     ScalarField, SheetOptions, SurfaceDomain, SurfaceOptions, extract_surfaces,
     sheet_through_points,
 };
 use crate::Result;
 use crate::mesh::Mesh;
+use crate::spatial::PointBuckets;
 
 /// How [`proximal_sheet_on_ridge`] searches.
 #[derive(Debug, Clone, PartialEq)]
@@ -224,7 +224,7 @@ fn ridge_points_extending(
     near_sheet_mm: f64,
     reach_mm: f64,
 ) -> (Vec<DVec3>, Vec<DVec3>) {
-    let Some(near_sheet) = TrustRegion::new(&sheet.vertices, near_sheet_mm) else {
+    let Some(near_sheet) = PointBuckets::new(&sheet.vertices, near_sheet_mm) else {
         return (Vec::new(), Vec::new());
     };
     let mut values = vec![0.0; weak_ridge.vertices.len()];

@@ -12,10 +12,10 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::trust::TrustRegion;
 use super::{ScalarField, SurfaceDomain, SurfaceOptions, SurfaceStats};
 use crate::Result;
 use crate::mesh::Mesh;
+use crate::spatial::PointBuckets;
 
 /// How [`sheet_through_points`] smooths and closes.
 #[derive(Debug, Clone, PartialEq)]
@@ -129,7 +129,7 @@ const SUPPORT_RADII: f64 = 3.0;
 pub(crate) struct OrientedPointField {
     points: Vec<DVec3>,
     normals: Vec<DVec3>,
-    grid: TrustRegion,
+    grid: PointBuckets,
     smoothing_mm: f64,
     reach_mm: f64,
     bridge_mm: f64,
@@ -151,7 +151,7 @@ impl OrientedPointField {
             .filter_map(|(&p, n)| Some((p, n.try_normalize()?)).filter(|_| p.is_finite()))
             .unzip();
         let support = SUPPORT_RADII * smoothing_mm;
-        let grid = TrustRegion::new(&points, support)?;
+        let grid = PointBuckets::new(&points, support)?;
         Some(OrientedPointField {
             points,
             normals,

@@ -1,12 +1,13 @@
-//! Region of trust: "is this point within `radius` of any data point?" via a uniform bucket grid, which
-//! also serves neighbour queries ("every point within `radius`", for the oriented-point sheet).
+//! Points in a uniform bucket grid, shared by the stages: "is this point within `radius` of any data
+//! point?" (the surfacing's region of trust) and "every point within `radius`" (the oriented-point
+//! sheet, and which echoes back a mesh piece).
 
 use glam::DVec3;
 
-/// Trust points bucketed into cubes of side `radius`: a query looks at the 27 buckets around the point.
+/// Points bucketed into cubes of side `radius`: a query looks at the 27 buckets around the point.
 /// Points are stored sorted by bucket key, so the structure is two flat arrays.
 #[derive(Debug, Clone)]
-pub(crate) struct TrustRegion {
+pub(crate) struct PointBuckets {
     radius_mm: f64,
     origin_mm: DVec3,
     /// Sorted bucket keys, one per non-empty bucket, and where its points start in `points`.
@@ -20,10 +21,10 @@ pub(crate) struct TrustRegion {
 const BUCKET_BITS: u32 = 21;
 const BUCKET_MAX: i64 = (1 << BUCKET_BITS) - 1;
 
-impl TrustRegion {
+impl PointBuckets {
     /// `None` when there are no (finite) trust points: no clipping. Bucket coordinates beyond 2^21 are
     /// clamped (they only merge far buckets, which stays correct since points are compared exactly).
-    pub fn new(points: &[DVec3], radius_mm: f64) -> Option<TrustRegion> {
+    pub fn new(points: &[DVec3], radius_mm: f64) -> Option<PointBuckets> {
         let finite: Vec<(u32, DVec3)> = points
             .iter()
             .enumerate()
@@ -36,7 +37,7 @@ impl TrustRegion {
         let origin_mm = finite
             .iter()
             .fold(DVec3::splat(f64::INFINITY), |a, (_, p)| a.min(*p));
-        let mut region = TrustRegion {
+        let mut region = PointBuckets {
             radius_mm,
             origin_mm,
             bucket_keys: Vec::new(),
@@ -81,7 +82,7 @@ impl TrustRegion {
     }
 
     /// Calls `f(index, point)` for every point within `reach_mm` (at most the bucket radius) of `p`,
-    /// `index` being its position in the slice given to [`TrustRegion::new`], in bucket order, until `f`
+    /// `index` being its position in the slice given to [`PointBuckets::new`], in bucket order, until `f`
     /// returns false.
     pub fn visit_within(&self, p: DVec3, reach_mm: f64, f: &mut dyn FnMut(usize, DVec3) -> bool) {
         let r2 = reach_mm.min(self.radius_mm).powi(2);
@@ -124,13 +125,13 @@ mod tests {
         let pts: Vec<DVec3> = (0..300)
             .map(|_| DVec3::new(rng.random(), rng.random(), rng.random()) * 20.0 - 5.0)
             .collect();
-        let region = TrustRegion::new(&pts, 1.5).unwrap();
+        let region = PointBuckets::new(&pts, 1.5).unwrap();
         for _ in 0..2000 {
             let q = DVec3::new(rng.random(), rng.random(), rng.random()) * 30.0 - 10.0;
             let brute = pts.iter().any(|p| p.distance(q) <= 1.5);
             assert_eq!(region.contains(q), brute, "{q}");
         }
-        assert!(TrustRegion::new(&[], 1.0).is_none());
+        assert!(PointBuckets::new(&[], 1.0).is_none());
         // Neighbour visits: exactly the points within reach, by their index in `pts`.
         for _ in 0..200 {
             let q = DVec3::new(rng.random(), rng.random(), rng.random()) * 30.0 - 10.0;
