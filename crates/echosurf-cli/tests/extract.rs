@@ -274,3 +274,60 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
     }
     assert!(!dir.path().join("bad.ply").exists());
 }
+
+#[test]
+fn pieces_one_frame_echoes_are_removed_with_a_warning_saying_how_to_keep_them() {
+    // Two frames far apart: every piece of the surface lies in one of them.
+    let dir = tempfile::tempdir().unwrap();
+    let sim = echosurf(&[
+        "simulate",
+        "--phantom",
+        "sphere",
+        "--frames-per-sweep",
+        "2",
+        "--sweeps",
+        "1",
+        "--width",
+        "128",
+        "--height",
+        "100",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert!(sim.status.success());
+    let (seq, config) = (
+        dir.path().join("sim.mha"),
+        dir.path().join("sim_config.xml"),
+    );
+    let report_path = dir.path().join("report.json");
+    let mesh = dir.path().join("mesh.ply");
+    let out = extract(
+        &seq,
+        &config,
+        &mesh,
+        &["--report", report_path.to_str().unwrap()],
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    // The default asks for 3 frames; a 2-frame recording is asked for 2.
+    assert!(
+        stderr.contains(
+            "was echoed by fewer than 2 frames and removed (--min-echo-frames 0 keeps them)"
+        ),
+        "{stderr}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
+    assert_eq!(report["sheets"][0]["min_echo_frames"], 2);
+    let removed = report["sheets"][0]["pieces_without_echoes"]
+        .as_u64()
+        .unwrap();
+    assert!(removed >= 1);
+    assert!(echosurf::io::read_mesh(&mesh).unwrap().is_empty());
+    // Turned off, the same pieces are there.
+    let kept = dir.path().join("kept.ply");
+    let out = extract(&seq, &config, &kept, &["--min-echo-frames", "0"]);
+    assert!(out.status.success());
+    let mesh = echosurf::io::read_mesh(&kept).unwrap();
+    assert_eq!(mesh.topology().components as u64, removed);
+}

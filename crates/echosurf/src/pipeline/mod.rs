@@ -237,7 +237,8 @@ pub struct SheetUsed {
     pub weak_ridge_level: Option<f64>,
     /// Smallest piece kept (mm^2).
     pub min_component_area_mm2: f64,
-    /// Least frames whose echoes must back a piece (0: not checked), and the pieces removed for it.
+    /// Least frames whose echoes must back a piece (0: not checked; at most the frames used), and the
+    /// pieces removed for it.
     pub min_echo_frames: usize,
     pub pieces_without_echoes: usize,
 }
@@ -793,8 +794,9 @@ pub fn extract(
             if used.min_component_area_mm2 > 0.0 {
                 mesh.remove_small_components(used.min_component_area_mm2);
             }
-            used.min_echo_frames = options.min_echo_frames;
-            if options.min_echo_frames > 0 {
+            // A recording of fewer frames cannot show a wall more often than it has frames.
+            used.min_echo_frames = options.min_echo_frames.min(prepared.counts.frames_used);
+            if used.min_echo_frames > 0 {
                 // All kept blocks, not just the fitted samples: the check must not depend on the
                 // sample budget.
                 let (echoes, frames): (Vec<DVec3>, Vec<u32>) = prepared
@@ -810,15 +812,22 @@ pub fn extract(
                     &echoes,
                     &frames,
                     ECHO_SUPPORT_RADIUS_MM,
-                    options.min_echo_frames,
+                    used.min_echo_frames,
                 );
             }
         }
     });
-    for (level, mesh) in levels.iter().zip(&meshes) {
-        if mesh.is_empty() {
+    for (used, mesh) in sheets.iter().zip(&meshes) {
+        if mesh.is_empty() && used.pieces_without_echoes > 0 {
             warnings.push(format!(
-                "iso-level {level}: no surface found inside the region of trust"
+                "iso-level {}: every piece of surface ({}) was echoed by fewer than {} frames and removed \
+                 (--min-echo-frames 0 keeps them)",
+                used.level, used.pieces_without_echoes, used.min_echo_frames
+            ));
+        } else if mesh.is_empty() {
+            warnings.push(format!(
+                "iso-level {}: no surface found inside the region of trust",
+                used.level
             ));
         }
     }
