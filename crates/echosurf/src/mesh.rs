@@ -398,7 +398,10 @@ impl Mesh {
                     continue;
                 }
                 buckets.visit_within(*v, radius_mm, &mut |k, _| {
-                    let frame = echo_frames[k];
+                    // An echo without a frame (slices of unequal length) backs nothing.
+                    let Some(&frame) = echo_frames.get(k) else {
+                        return true;
+                    };
                     if let Err(at) = seen.binary_search(&frame) {
                         seen.insert(at, frame);
                     }
