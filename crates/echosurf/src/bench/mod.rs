@@ -300,13 +300,8 @@ pub fn patches_of(mesh: &Mesh, mask: &[bool], min_area_mm2: f64) -> Mesh {
     patches
 }
 
-/// Connected patches of `mesh`'s triangles flagged in `mask`, of at least `min_area_mm2` each.
-pub fn masked_patches(mesh: &Mesh, mask: &[bool], min_area_mm2: f64) -> usize {
-    patch_count(&patches_of(mesh, mask, min_area_mm2))
-}
-
-/// Connected pieces of `patches`.
-fn patch_count(patches: &Mesh) -> usize {
+/// Connected pieces of `patches` (from [`patches_of`]).
+pub fn patch_count(patches: &Mesh) -> usize {
     if patches.is_empty() {
         0
     } else {
@@ -314,7 +309,7 @@ fn patch_count(patches: &Mesh) -> usize {
     }
 }
 
-/// How a surface's pieces lie over the truth's patches (those of [`masked_patches`]): a patch is whole
+/// How a surface's pieces lie over the truth's patches (those of [`patches_of`]): a patch is whole
 /// when exactly one piece of the mesh comes within 1 mm of at least `min_area_mm2` of it, split when two
 /// or more do, missed when none does. This is the pipeline issue's "at most one mesh component per true
 /// wall", read per echoing patch of a wall.
@@ -711,7 +706,7 @@ mod tests {
         });
         assert!(!side_kept);
         // The frame sweeps a strip over the top cap and one under the bottom cap: two patches.
-        assert_eq!(masked_patches(&sphere, &mask, 0.5), 2);
-        assert_eq!(masked_patches(&sphere, &mask, 1e6), 0);
+        assert_eq!(patch_count(&patches_of(&sphere, &mask, 0.5)), 2);
+        assert_eq!(patch_count(&patches_of(&sphere, &mask, 1e6)), 0);
     }
 }
