@@ -8,17 +8,38 @@ use echosurf::simulate::{
 };
 use glam::DVec3;
 
-fn simulated(kind: PhantomKind) -> Simulation {
-    simulated_frames(kind, 12)
+/// One pass over the phantom at 0.2 mm/px, without tracking errors: `frames` frames of
+/// `width_px` x `height_px`.
+#[derive(Debug, Clone, Copy)]
+struct Pass {
+    frames: usize,
+    width_px: usize,
+    height_px: usize,
 }
 
-fn simulated_frames(kind: PhantomKind, frames_per_sweep: usize) -> Simulation {
-    let options = SimulationOptions {
-        phantom: kind,
-        frames_per_sweep,
-        sweeps: Some(1),
+/// The small pass most tests use (40 x 32 mm frames): 12 frames over the sphere, 24 over the duck.
+fn small_pass(kind: &PhantomKind) -> Pass {
+    Pass {
+        frames: if *kind == PhantomKind::Duck { 24 } else { 12 },
         width_px: 200,
         height_px: 160,
+    }
+}
+
+/// The simulator's own frame (256 x 200 px, 51 x 40 mm) and frame count (60 per sweep).
+const DEFAULT_PASS: Pass = Pass {
+    frames: 60,
+    width_px: 256,
+    height_px: 200,
+};
+
+fn simulated_pass(kind: PhantomKind, pass: Pass) -> Simulation {
+    let options = SimulationOptions {
+        phantom: kind,
+        frames_per_sweep: pass.frames,
+        sweeps: Some(1),
+        width_px: pass.width_px,
+        height_px: pass.height_px,
         pixel_size_mm: 0.2,
         ..Default::default()
     }
@@ -63,7 +84,8 @@ fn true_poses(sim: &Simulation, kind: &PhantomKind) -> PoseResolution {
 }
 
 /// Share of the visible-surface pixels within 1 mm that are kept, per largest angle between the surface
-/// normal and the beam, and the share of all pixels kept, over every posed frame (a frame left empty
+/// normal and the beam (30 degrees: the simulator's strong specular echo, at least 18 % of normal
+/// incidence; 45; 60), and the share of all pixels kept, over every posed frame (a frame left empty
 /// counts its surface pixels as lost).
 /// Visible surface: the first boundary each column's beam meets (below it the object shadows everything),
 /// facing the beam within the given angle.
@@ -73,17 +95,27 @@ struct Coverage {
     kept_all: f64,
 }
 
+impl Coverage {
+    fn within(&self, angle_deg: f64) -> f64 {
+        self.near_kept
+            .iter()
+            .find(|(a, _)| *a == angle_deg)
+            .map(|(_, kept)| *kept)
+            .expect("an angle the coverage measures")
+    }
+}
+
 fn coverage(
     sim: &Simulation,
     kind: &PhantomKind,
     poses: &PoseResolution,
     masks: &BandMasks,
 ) -> Coverage {
-    const ANGLES_DEG: [f64; 2] = [45.0, 60.0];
+    const ANGLES_DEG: [f64; 3] = [30.0, 45.0, 60.0];
     let phantom = build_phantom(kind).unwrap();
     let (w, h) = (sim.sequence.width, sim.sequence.height);
-    let mut near = [0usize; 2];
-    let mut near_kept = [0usize; 2];
+    let mut near = [0usize; 3];
+    let mut near_kept = [0usize; 3];
     let mut kept = 0usize;
     for pose in &poses.poses {
         let f = pose.frame_index;
@@ -112,13 +144,13 @@ fn coverage(
     }
     let all = w * h * poses.poses.len();
     eprintln!(
-        "{} frames; visible-surface pixels kept {near_kept:?} of {near:?} (45, 60 deg), kept {kept}/{all}",
+        "{} frames; visible-surface pixels kept {near_kept:?} of {near:?} (30, 45, 60 deg), kept {kept}/{all}",
         poses.poses.len()
     );
     assert!(
-        near[1] > 1000,
+        near[2] > 1000,
         "the sweep must image the surface ({} pixels)",
-        near[1]
+        near[2]
     );
     Coverage {
         near_kept: ANGLES_DEG
@@ -180,7 +212,8 @@ fn segment_with(
     masks
 }
 
-/// Asserts the kept share of all pixels (<= 30 %) and, per angle, the kept share of the visible surface.
+/// Asserts the kept share of all pixels (<= 30 %) and, per listed angle, the kept share of the visible
+/// surface.
 ///
 /// The issue's target is >= 99 % of the surface facing the beam within 60 degrees. The simulator's echo
 /// is `R cos^12(theta)` plus a weak diffuse term, so beyond ~40 degrees a boundary returns no echo: on the
@@ -190,11 +223,13 @@ fn segment_with(
 /// the band follows the sphere into that range (>= 99 % within 60 degrees), but not all of the duck's
 /// steep walls, so the duck's tests assert at least 99 % within 45 degrees and the measured level (minus
 /// a margin) within 60 degrees; `issue_target_duck_60_degrees` keeps the 60-degree target as an
-/// executable, ignored target.
+/// executable, ignored target. Within 45 degrees the result also depends on the frame: on the
+/// simulator's own, larger frame (`DEFAULT_PASS`) the duck keeps 99.1 % / 98.6 % (auto / polygon), so
+/// what holds on every pass measured is the strong echo, within 30 degrees (`default_pass_*`).
 fn assert_coverage(c: &Coverage, min_near_kept: &[(f64, f64)]) {
     assert!(c.kept_all <= 0.30, "kept {} of all pixels", c.kept_all);
-    for (&(angle, kept), &(angle_min, min)) in c.near_kept.iter().zip(min_near_kept) {
-        assert_eq!(angle, angle_min);
+    for &(angle, min) in min_near_kept {
+        let kept = c.within(angle);
         assert!(
             kept >= min,
             "kept {kept} of the pixels within 1 mm of the surface facing the beam within {angle} degrees \
@@ -203,14 +238,15 @@ fn assert_coverage(c: &Coverage, min_near_kept: &[(f64, f64)]) {
     }
 }
 
-/// Chained-edgel coverage of the visible surface of `kind` (the sphere: one 12-frame pass; the duck: 24
-/// frames), from the automatic band or a polygon drawn on the first frame, with or without the backward
-/// pass.
-fn chained_coverage(kind: PhantomKind, polygon: bool, backward_pass: bool) -> Coverage {
-    let sim = match kind {
-        PhantomKind::Duck => simulated_frames(kind.clone(), 24),
-        _ => simulated(kind.clone()),
-    };
+/// Chained-edgel coverage of the visible surface of `kind` on `pass`, from the automatic band or a
+/// polygon drawn on the first frame, with or without the backward pass.
+fn chained_coverage_on(
+    kind: PhantomKind,
+    pass: Pass,
+    polygon: bool,
+    backward_pass: bool,
+) -> Coverage {
+    let sim = simulated_pass(kind.clone(), pass);
     let poses = true_poses(&sim, &kind);
     let init = if polygon {
         polygon_on_first_frame(&sim, &kind, &poses)
@@ -227,6 +263,12 @@ fn chained_coverage(kind: PhantomKind, polygon: bool, backward_pass: bool) -> Co
         &poses,
         &segment_with(&sim, &poses, &init, &options),
     )
+}
+
+/// [`chained_coverage_on`] the small pass (the sphere: 12 frames; the duck: 24).
+fn chained_coverage(kind: PhantomKind, polygon: bool, backward_pass: bool) -> Coverage {
+    let pass = small_pass(&kind);
+    chained_coverage_on(kind, pass, polygon, backward_pass)
 }
 
 /// Measured with `SegmentOptions::chained()`: 100 % (45 deg) / 99.7 % (60 deg) near the surface, 26.5 %
@@ -281,5 +323,20 @@ fn simulated_duck_polygon_init() {
     let both = chained_coverage(PhantomKind::Duck, true, true);
     assert_coverage(&one_way, &[(45.0, 0.99), (60.0, 0.95)]);
     assert_coverage(&both, &[(45.0, 0.99), (60.0, 0.95)]);
-    assert!(both.near_kept[0].1 > one_way.near_kept[0].1);
+    assert!(both.within(45.0) > one_way.within(45.0));
+}
+
+/// The simulator's own frame and frame count (`DEFAULT_PASS`: 60 frames of 51 x 40 mm), chained edgels,
+/// both inits. Measured: sphere 100 % within 30 and 45 degrees, 18.2 % / 18.1 % of all pixels (auto /
+/// polygon); duck 100 % within 30 degrees, 99.1 % / 98.6 % within 45, 22.4 % / 22.1 % of all pixels. The
+/// paper's edgels on the same pass: sphere 100 % within 45 degrees in 46.3 % of the pixels, duck 99.3 %
+/// in 28.0 %.
+#[test]
+fn default_pass_strong_echo_kept_in_a_narrow_band() {
+    for kind in [PhantomKind::Sphere, PhantomKind::Duck] {
+        for polygon in [false, true] {
+            let c = chained_coverage_on(kind.clone(), DEFAULT_PASS, polygon, false);
+            assert_coverage(&c, &[(30.0, 0.99)]);
+        }
+    }
 }
