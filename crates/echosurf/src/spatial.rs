@@ -92,21 +92,27 @@ impl PointBuckets {
             return;
         }
         let b = self.bucket(p);
+        // The three buckets along x of one (y, z) row have consecutive keys, so their points are one
+        // contiguous run: one search per row instead of one per bucket, and the same visiting order.
+        let x_lo = (b[0] - 1).max(0);
+        let x_hi = (b[0] + 1).min(BUCKET_MAX);
         for dz in -1..=1 {
             for dy in -1..=1 {
-                for dx in -1..=1 {
-                    let n = [b[0] + dx, b[1] + dy, b[2] + dz];
-                    if n.iter().any(|&c| !(0..=BUCKET_MAX).contains(&c)) {
-                        continue;
-                    }
-                    if let Ok(i) = self.bucket_keys.binary_search(&self.key(n)) {
-                        for k in self.bucket_starts[i] as usize..self.bucket_starts[i + 1] as usize
-                        {
-                            let t = self.points[k];
-                            if t.distance_squared(p) <= r2 && !f(self.original[k] as usize, t) {
-                                return;
-                            }
-                        }
+                let (y, z) = (b[1] + dy, b[2] + dz);
+                if !(0..=BUCKET_MAX).contains(&y) || !(0..=BUCKET_MAX).contains(&z) {
+                    continue;
+                }
+                let (lo, hi) = (self.key([x_lo, y, z]), self.key([x_hi, y, z]));
+                let first = self.bucket_keys.partition_point(|&k| k < lo);
+                let last = first + self.bucket_keys[first..].partition_point(|&k| k <= hi);
+                if first == last {
+                    continue;
+                }
+                let run = self.bucket_starts[first] as usize..self.bucket_starts[last] as usize;
+                for k in run {
+                    let t = self.points[k];
+                    if t.distance_squared(p) <= r2 && !f(self.original[k] as usize, t) {
+                        return;
                     }
                 }
             }
