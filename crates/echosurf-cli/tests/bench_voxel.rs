@@ -153,8 +153,16 @@ fn bench_quick_writes_table_json_and_plots() {
             let c = r[key].as_f64().unwrap_or(f64::NAN);
             assert!((0.0..=1.0).contains(&c), "{key} {r}");
         }
+        // The sphere's top cap faces the probe: one patch, scored for every route that drew a surface.
+        let probe = &r["probe_facing"];
+        assert_eq!(probe["side"], "probe", "{r}");
+        assert_eq!(probe["max_angle_deg"], 20.0, "{r}");
+        assert!(probe["truth_patches"].as_u64().unwrap() >= 1, "{r}");
+        let c = probe["completeness_1mm"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&c), "{r}");
     }
     assert!(table.contains("completeness, <= 30 deg"), "{table}");
+    assert!(table.contains("probe side <= 20 deg"), "{table}");
     for svg in ["accuracy_vs_time.svg", "fit_scaling.svg"] {
         let text = std::fs::read_to_string(out.join(svg)).unwrap();
         assert!(text.starts_with("<svg"), "{svg}");

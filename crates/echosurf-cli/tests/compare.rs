@@ -6,6 +6,10 @@ use std::process::Command;
 use echosurf::mesh::Mesh;
 use glam::DVec3;
 
+#[path = "../../echosurf/tests/common/real_data.rs"]
+mod real_data;
+use real_data::real;
+
 /// An axis-aligned box from `lo` to `hi`, outward winding, closed.
 fn cuboid(lo: DVec3, hi: DVec3) -> Mesh {
     let corner = |i: u32| {
@@ -88,4 +92,46 @@ fn compare_reports_distances_completeness_and_topology() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("broken.ply"), "{err}");
+}
+
+/// The swept-truth score's inputs are checked: a missing sequence is named, `--config` needs
+/// `--sequence`, and the facing angle must lie in (0, 90] degrees.
+#[test]
+fn compare_sequence_options_fail_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = dir.path().join("truth.stl");
+    echosurf::io::write_mesh(&truth, &cuboid(DVec3::ZERO, DVec3::splat(10.0))).unwrap();
+    let run = |extra: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+            .arg("compare")
+            .arg(&truth)
+            .arg(&truth)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{extra:?} should fail");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let missing = dir.path().join("missing.mha");
+    let err = run(&["--sequence", missing.to_str().unwrap()]);
+    assert!(err.contains("missing.mha"), "{err}");
+    let err = run(&["--config", "x.xml"]);
+    assert!(err.contains("--sequence"), "{err}");
+    let spine = real("SpinePhantomFreehand.igs.mha");
+    let config = real("PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml");
+    let on_spine = |extra: &[&str]| {
+        let mut args = vec![
+            "--sequence",
+            spine.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    let err = on_spine(&["--facing-deg", "0"]);
+    assert!(err.contains("facing angle"), "{err}");
+    // A truth the sweep never passed over (the box at the world origin) is named as such.
+    let err = on_spine(&[]);
+    assert!(err.contains("share a world frame"), "{err}");
 }

@@ -3,8 +3,28 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use echosurf::bench::{FacingSide, SweptFacingScore, swept_facing_score};
+use echosurf::io;
 use echosurf::mesh::MeshTopology;
 use echosurf::metrics::{CompareOptions, Comparison, SurfaceDistances, compare_meshes};
+
+/// Which side of a wall counts as facing the beam.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum FacingArg {
+    /// Either side of the wall.
+    Either,
+    /// The side facing the probe (the truth's outward normal against the beam).
+    Probe,
+}
+
+impl From<FacingArg> for FacingSide {
+    fn from(f: FacingArg) -> Self {
+        match f {
+            FacingArg::Either => FacingSide::Either,
+            FacingArg::Probe => FacingSide::Probe,
+        }
+    }
+}
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -24,6 +44,23 @@ pub struct Args {
     /// Seed of the sample placement.
     #[arg(long, default_value_t = CompareOptions::default().seed)]
     pub seed: u64,
+    /// Also score the truth this tracked sequence swept and that faces its beam: completeness within
+    /// 1 mm and the mesh's pieces per echoing patch. The truth must be in the sequence's world frame
+    /// (as `extract` writes meshes); the recorded poses stand for where the frames were.
+    #[arg(long)]
+    pub sequence: Option<PathBuf>,
+    /// PLUS device-set XML of the sequence (Image->Probe calibration, clip rectangle).
+    #[arg(long, requires = "sequence")]
+    pub config: Option<PathBuf>,
+    /// World frame of the sequence's poses, as in `extract`: auto, tracker or reference.
+    #[arg(long, default_value = "auto")]
+    pub world: String,
+    /// With --sequence: largest angle between the truth's normal and a sweeping frame's beam (degrees).
+    #[arg(long, default_value_t = 30.0)]
+    pub facing_deg: f64,
+    /// With --sequence: which side of a wall must face the beam.
+    #[arg(long, value_enum, default_value = "either")]
+    pub facing: FacingArg,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -42,6 +79,37 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.truth.display()
         )
     })?;
+    let swept = match &args.sequence {
+        None => None,
+        Some(path) => {
+            let sequence = io::read_sequence(path)?;
+            let calibration = args
+                .config
+                .as_deref()
+                .map(io::read_calibration)
+                .transpose()?;
+            let poses = io::resolve_poses(
+                &sequence,
+                calibration.as_ref(),
+                super::extract::world_choice(&args.world)?,
+                path,
+            )?;
+            let image_to_world: Vec<_> = poses.poses.iter().map(|p| p.image_to_world).collect();
+            let score = swept_facing_score(
+                &mesh,
+                &truth,
+                &image_to_world,
+                sequence.width,
+                sequence.height,
+                calibration.as_ref().and_then(|c| c.clip),
+                args.facing.into(),
+                args.facing_deg,
+                &options,
+            )
+            .with_context(|| format!("scoring the truth swept by {}", path.display()))?;
+            Some(score)
+        }
+    };
     if args.json {
         // One flat object: the comparison's fields plus the inputs and the derived topology verdicts.
         let mut value = serde_json::to_value(&comparison)?;
@@ -50,6 +118,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .context("comparison serialises to an object")?;
         object.insert("mesh".into(), serde_json::json!(args.mesh));
         object.insert("truth".into(), serde_json::json!(args.truth));
+        if let Some(score) = &swept {
+            object.insert("sequence".into(), serde_json::json!(args.sequence));
+            object.insert("swept_facing".into(), serde_json::to_value(score)?);
+        }
         for (key, topo) in [
             ("mesh", &comparison.mesh_topology),
             ("truth", &comparison.truth_topology),
@@ -65,12 +137,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         println!("{}", serde_json::to_string(&value)?);
     } else {
-        print!("{}", table(&args, &comparison));
+        print!("{}", table(&args, &comparison, swept.as_ref()));
     }
     Ok(())
 }
 
-fn table(args: &Args, c: &Comparison) -> String {
+fn table(args: &Args, c: &Comparison, swept: Option<&SweptFacingScore>) -> String {
     let mut out = format!(
         "mesh  {}\ntruth {}\n\n",
         args.mesh.display(),
@@ -96,6 +168,28 @@ fn table(args: &Args, c: &Comparison) -> String {
         c.mesh_area_mm2,
         c.truth_area_mm2
     ));
+    if let Some(s) = swept {
+        let p = &s.patch_coverage;
+        out.push_str(&format!(
+            "swept truth facing the beam within {} degrees ({} side; frames' planes within {:.2} mm)\n\
+             truth area                       {:.1} mm^2\n\
+             completeness (truth within 1 mm) {:.2} %\n\
+             echoing patches                  {}: {} whole, {} split, {} missed \
+             (pieces of the mesh per patch)\n\n",
+            s.max_angle_deg,
+            match s.side {
+                FacingSide::Either => "either",
+                FacingSide::Probe => "probe",
+            },
+            s.plane_distance_mm,
+            s.truth_area_mm2,
+            100.0 * s.completeness_1mm,
+            s.truth_patches,
+            p.whole,
+            p.split,
+            p.missed
+        ));
+    }
     out.push_str(&format!(
         "{:<22} {:>12} {:>12}\n",
         "topology", "mesh", "truth"

@@ -191,6 +191,18 @@ pub fn swept_beam_facing_mask(
     facing_within(&cosines, max_angle_deg)
 }
 
+/// Which side of a wall counts as facing the beam.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FacingSide {
+    /// Either side: the wall's normal along or against the beam (a specular boundary echoes from
+    /// both sides where the beam reaches it).
+    Either,
+    /// The side facing the probe: the outward normal against the beam (needs outward normals, as on a
+    /// closed truth mesh).
+    Probe,
+}
+
 /// Per truth triangle, the largest |cos| between its normal and the beam of a frame that sweeps it (its
 /// centroid projects into the frame's clipped image within `max_plane_distance_mm` of the plane);
 /// `-inf` where no frame does. One pass over the frames serves every angle ([`facing_within`]).
@@ -201,6 +213,28 @@ pub fn swept_beam_cosines(
     height: usize,
     clip: Option<ClipRect>,
     max_plane_distance_mm: f64,
+) -> Vec<f64> {
+    swept_beam_cosines_facing(
+        truth,
+        image_to_world,
+        width,
+        height,
+        clip,
+        max_plane_distance_mm,
+        FacingSide::Either,
+    )
+}
+
+/// [`swept_beam_cosines`] for one side: with [`FacingSide::Probe`], the largest `-cos` (the outward
+/// normal against the beam), so a wall seen only from behind scores below zero.
+pub fn swept_beam_cosines_facing(
+    truth: &Mesh,
+    image_to_world: &[DMat4],
+    width: usize,
+    height: usize,
+    clip: Option<ClipRect>,
+    max_plane_distance_mm: f64,
+    side: FacingSide,
 ) -> Vec<f64> {
     let (u0, v0, u1, v1) =
         match clip.and_then(|c| crate::io::pose::clip_corners_px(width, height, &c)) {
@@ -233,7 +267,13 @@ pub fn swept_beam_cosines(
                 let foot = to_world.transform_point3(DVec3::new(p.x, p.y, 0.0));
                 (centroid - foot).dot(*plane_normal).abs() <= max_plane_distance_mm
             })
-            .map(|(_, _, beam, _)| triangle_normal.dot(*beam).abs())
+            .map(|(_, _, beam, _)| {
+                let cos = triangle_normal.dot(*beam);
+                match side {
+                    FacingSide::Either => cos.abs(),
+                    FacingSide::Probe => -cos,
+                }
+            })
             .fold(f64::NEG_INFINITY, f64::max)
     })
 }
@@ -265,6 +305,9 @@ pub struct RouteResult {
     pub completeness_1mm: f64,
     /// The same for truth facing the beam within [`STRONG_ECHO_DEG`] (NaN when there is none).
     pub completeness_strong_echo_1mm: f64,
+    /// The truth facing the probe within [`PROBE_FACING_DEG`] of a sweeping beam: completeness and
+    /// pieces per patch (`None` when the route produced no surface or no truth faces the probe so).
+    pub probe_facing: Option<SweptFacingScore>,
     pub seconds: f64,
     /// Peak resident memory during the route above the resident memory at its start.
     pub peak_extra_bytes: Option<u64>,
@@ -272,7 +315,7 @@ pub struct RouteResult {
 }
 
 /// Median distance between the origins of consecutive frames.
-fn median_spacing(frames: &[DMat4]) -> Option<f64> {
+pub fn median_spacing(frames: &[DMat4]) -> Option<f64> {
     let mut d: Vec<f64> = frames
         .windows(2)
         .map(|w| w[0].w_axis.truncate().distance(w[1].w_axis.truncate()))
@@ -285,6 +328,11 @@ fn median_spacing(frames: &[DMat4]) -> Option<f64> {
 /// Walls within this angle of the beam return a strong specular echo in the simulator (cos^12: at least
 /// 18 % of normal incidence); the benchmark also scores completeness on them alone.
 pub const STRONG_ECHO_DEG: f64 = 30.0;
+
+/// The benchmark also scores the truth whose outward side faces the probe within this angle of a
+/// sweeping beam ([`FacingSide::Probe`]): the walls every sweep shows with a strong echo from the
+/// side the sound arrives at (the far side of a solid object lies in its shadow).
+pub const PROBE_FACING_DEG: f64 = 20.0;
 
 /// Truth patches smaller than this (mm^2) are not counted in [`RouteResult::truth_patches_strong_echo`]
 /// (slivers where a wall's angle to the beam hovers around the limit); the ridge sheet's default
@@ -361,6 +409,79 @@ pub fn patch_coverage(mesh: &Mesh, patches: &Mesh, min_area_mm2: f64) -> PatchCo
         }
     }
     coverage
+}
+
+/// The swept truth that faces the beam within an angle, and how a mesh covers it: completeness within
+/// 1 mm and the mesh's pieces per echoing patch ([`PatchCoverage`]). For any sweep whose truth lies in
+/// the same world frame as its poses (`compare --sequence`).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SweptFacingScore {
+    pub max_angle_deg: f64,
+    pub side: FacingSide,
+    /// A truth triangle counts as swept within this distance of a frame's plane: the median frame
+    /// spacing, at least 1.5 mm (as the benchmark).
+    pub plane_distance_mm: f64,
+    pub truth_area_mm2: f64,
+    pub completeness_1mm: f64,
+    /// Connected patches (at least [`MIN_PATCH_AREA_MM2`]) of that truth.
+    pub truth_patches: usize,
+    pub patch_coverage: PatchCoverage,
+}
+
+/// Scores `mesh` on the part of `truth` that the frames `image_to_world` (of `width` x `height` px,
+/// `clip`ped) sweep and whose `side` faces their beam within `max_angle_deg`.
+#[allow(clippy::too_many_arguments)]
+pub fn swept_facing_score(
+    mesh: &Mesh,
+    truth: &Mesh,
+    image_to_world: &[DMat4],
+    width: usize,
+    height: usize,
+    clip: Option<ClipRect>,
+    side: FacingSide,
+    max_angle_deg: f64,
+    compare: &CompareOptions,
+) -> Result<SweptFacingScore> {
+    if !(max_angle_deg > 0.0 && max_angle_deg <= 90.0) {
+        return Err(Error::InvalidInput(format!(
+            "facing angle must be in (0, 90] degrees, got {max_angle_deg}"
+        )));
+    }
+    let plane_distance_mm = median_spacing(image_to_world).unwrap_or(1.5).max(1.5);
+    let cosines = swept_beam_cosines_facing(
+        truth,
+        image_to_world,
+        width,
+        height,
+        clip,
+        plane_distance_mm,
+        side,
+    );
+    let mask = facing_within(&cosines, max_angle_deg);
+    if !mask.iter().any(|&m| m) {
+        return Err(Error::InvalidInput(format!(
+            "no truth triangle is swept by a frame and faces its beam within {max_angle_deg} degrees \
+             (do the truth and the sequence share a world frame?)"
+        )));
+    }
+    let patches = patches_of(truth, &mask, MIN_PATCH_AREA_MM2);
+    let comparison = compare_meshes(
+        mesh,
+        truth,
+        &CompareOptions {
+            truth_mask: Some(mask),
+            ..compare.clone()
+        },
+    )?;
+    Ok(SweptFacingScore {
+        max_angle_deg,
+        side,
+        plane_distance_mm,
+        truth_area_mm2: comparison.truth_compared_area_mm2,
+        completeness_1mm: comparison.completeness_1mm,
+        truth_patches: patch_count(&patches),
+        patch_coverage: patch_coverage(mesh, &patches, MIN_PATCH_AREA_MM2),
+    })
 }
 
 /// The routes compared, with the sheet each outputs: the RBF route's iso-surface (the paper's and
@@ -444,6 +565,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
             accuracy_p95_mm: f64::NAN,
             completeness_1mm: 0.0,
             completeness_strong_echo_1mm: f64::NAN,
+            probe_facing: None,
             seconds,
             peak_extra_bytes: None,
             error: None,
@@ -478,6 +600,22 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
                             Err(e) => result.error = Some(e.to_string()),
                         }
                     }
+                    // No truth facing the probe so is not a failure of the route: the column stays empty.
+                    result.probe_facing = swept_facing_score(
+                        &mesh,
+                        &case.truth,
+                        &case.true_image_to_world,
+                        case.sequence.width,
+                        case.sequence.height,
+                        case.calibration.clip,
+                        FacingSide::Probe,
+                        PROBE_FACING_DEG,
+                        &CompareOptions {
+                            truth_mask: None,
+                            ..compare.clone()
+                        },
+                    )
+                    .ok();
                 }
             }
         }
@@ -493,8 +631,8 @@ fn mb(bytes: Option<u64>) -> String {
 /// The results as a markdown table, one row per case and route.
 pub fn markdown_table(results: &[RouteResult]) -> String {
     let mut out = String::from(
-        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | completeness, <= 30 deg (1 mm) | components | truth patches, <= 30 deg | patches whole / split / missed | triangles | time (s) | peak extra memory (MB) |\n\
-         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| case | route | iso | accuracy mean (mm) | accuracy p95 (mm) | completeness (1 mm) | completeness, <= 30 deg (1 mm) | components | truth patches, <= 30 deg | patches whole / split / missed | probe side <= 20 deg: completeness; patches whole / split / missed of n | triangles | time (s) | peak extra memory (MB) |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in results {
         let note = r
@@ -503,7 +641,7 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
             .map(|e| format!(" ({e})"))
             .unwrap_or_default();
         out.push_str(&format!(
-            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {:.1} % | {} | {} | {} / {} / {} | {} | {:.2} | {} |\n",
+            "| {} | {}{} | {:.1} | {:.2} | {:.2} | {:.1} % | {:.1} % | {} | {} | {} / {} / {} | {} | {} | {:.2} | {} |\n",
             r.case,
             r.route,
             note,
@@ -517,6 +655,17 @@ pub fn markdown_table(results: &[RouteResult]) -> String {
             r.patch_coverage.whole,
             r.patch_coverage.split,
             r.patch_coverage.missed,
+            r.probe_facing.as_ref().map_or_else(
+                || "n/a".to_string(),
+                |p| format!(
+                    "{:.1} %; {} / {} / {} of {}",
+                    100.0 * p.completeness_1mm,
+                    p.patch_coverage.whole,
+                    p.patch_coverage.split,
+                    p.patch_coverage.missed,
+                    p.truth_patches
+                )
+            ),
             r.triangles,
             r.seconds,
             mb(r.peak_extra_bytes),
@@ -708,5 +857,92 @@ mod tests {
         // The frame sweeps a strip over the top cap and one under the bottom cap: two patches.
         assert_eq!(patch_count(&patches_of(&sphere, &mask, 0.5)), 2);
         assert_eq!(patch_count(&patches_of(&sphere, &mask, 1e6)), 0);
+    }
+
+    /// The same frame, scored per side: the probe (above, beam along -z) faces only the top cap's
+    /// outward normals. A mesh of the sphere's upper half covers the top strip whole and misses the
+    /// bottom one, so it is complete on the probe side and about half complete on either side.
+    #[test]
+    fn swept_facing_score_counts_the_side_facing_the_probe() {
+        let sphere = icosphere(DVec3::ZERO, 10.0, 4);
+        let frame = DMat4::from_cols(
+            glam::DVec4::new(0.5, 0.0, 0.0, 0.0),
+            glam::DVec4::new(0.0, 0.0, -0.5, 0.0),
+            glam::DVec4::new(0.0, 1.0, 0.0, 0.0),
+            glam::DVec4::new(-20.0, 0.0, 20.0, 1.0),
+        );
+        let mut upper = sphere.clone();
+        let keep: Vec<bool> = upper
+            .triangles
+            .iter()
+            .map(|t| t.iter().all(|&v| upper.vertices[v as usize].z > -0.5))
+            .collect();
+        upper.retain_triangles(&keep);
+        let score = |mesh: &Mesh, side| {
+            swept_facing_score(
+                mesh,
+                &sphere,
+                &[frame],
+                81,
+                81,
+                None,
+                side,
+                60.0,
+                &CompareOptions::default(),
+            )
+            .unwrap()
+        };
+        let probe = score(&upper, FacingSide::Probe);
+        let either = score(&upper, FacingSide::Either);
+        assert_eq!(probe.truth_patches, 1);
+        assert_eq!(either.truth_patches, 2);
+        assert!((either.truth_area_mm2 / probe.truth_area_mm2 - 2.0).abs() < 0.1);
+        assert!(probe.completeness_1mm > 0.999, "{probe:?}");
+        assert!((either.completeness_1mm - 0.5).abs() < 0.05, "{either:?}");
+        let whole_one = PatchCoverage {
+            whole: 1,
+            split: 0,
+            missed: 0,
+        };
+        assert_eq!(probe.patch_coverage, whole_one);
+        assert_eq!(
+            either.patch_coverage,
+            PatchCoverage {
+                missed: 1,
+                ..whole_one
+            }
+        );
+        // The whole sphere covers both strips; nothing faces the beam within 60 degrees behind the
+        // frame's plane, and a bad angle is refused.
+        assert_eq!(score(&sphere, FacingSide::Either).patch_coverage.whole, 2);
+        let far = DMat4::from_translation(DVec3::new(0.0, 100.0, 0.0)) * frame;
+        assert!(
+            swept_facing_score(
+                &sphere,
+                &sphere,
+                &[far],
+                81,
+                81,
+                None,
+                FacingSide::Either,
+                60.0,
+                &CompareOptions::default()
+            )
+            .is_err()
+        );
+        assert!(
+            swept_facing_score(
+                &sphere,
+                &sphere,
+                &[frame],
+                81,
+                81,
+                None,
+                FacingSide::Either,
+                0.0,
+                &CompareOptions::default()
+            )
+            .is_err()
+        );
     }
 }
