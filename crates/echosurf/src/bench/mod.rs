@@ -187,6 +187,7 @@ pub fn swept_beam_facing_mask(
         height,
         clip,
         max_plane_distance_mm,
+        FacingSide::Either,
     );
     facing_within(&cosines, max_angle_deg)
 }
@@ -205,29 +206,10 @@ pub enum FacingSide {
 
 /// Per truth triangle, the largest |cos| between its normal and the beam of a frame that sweeps it (its
 /// centroid projects into the frame's clipped image within `max_plane_distance_mm` of the plane);
-/// `-inf` where no frame does. One pass over the frames serves every angle ([`facing_within`]).
+/// `-inf` where no frame does. With [`FacingSide::Probe`], the largest `-cos` instead (the outward
+/// normal against the beam), so a wall seen only from behind scores below zero. One pass over the
+/// frames serves every angle ([`facing_within`]).
 pub fn swept_beam_cosines(
-    truth: &Mesh,
-    image_to_world: &[DMat4],
-    width: usize,
-    height: usize,
-    clip: Option<ClipRect>,
-    max_plane_distance_mm: f64,
-) -> Vec<f64> {
-    swept_beam_cosines_facing(
-        truth,
-        image_to_world,
-        width,
-        height,
-        clip,
-        max_plane_distance_mm,
-        FacingSide::Either,
-    )
-}
-
-/// [`swept_beam_cosines`] for one side: with [`FacingSide::Probe`], the largest `-cos` (the outward
-/// normal against the beam), so a wall seen only from behind scores below zero.
-pub fn swept_beam_cosines_facing(
     truth: &Mesh,
     image_to_world: &[DMat4],
     width: usize,
@@ -448,7 +430,7 @@ pub fn swept_facing_score(
         )));
     }
     let plane_distance_mm = median_spacing(image_to_world).unwrap_or(1.5).max(1.5);
-    let cosines = swept_beam_cosines_facing(
+    let cosines = swept_beam_cosines(
         truth,
         image_to_world,
         width,
@@ -504,6 +486,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
         case.sequence.height,
         case.calibration.clip,
         plane_distance,
+        FacingSide::Either,
     );
     let mask = facing_within(&cosines, 60.0);
     if !mask.iter().any(|&m| m) {
@@ -824,18 +807,23 @@ mod tests {
         assert!(fit_sizes(999).is_empty());
     }
 
-    /// One frame through the centre of a sphere, beam along -z: only the top and bottom caps within
-    /// 60 degrees of the beam axis and inside the image count.
-    #[test]
-    fn mask_keeps_the_swept_caps_facing_the_beam() {
-        let sphere = icosphere(DVec3::ZERO, 10.0, 4);
-        // Image x -> world x, image y (depth) -> world -z, 0.5 mm pixels, image top at z = 20.
+    /// A sphere of radius 10 mm at the origin and one 81 x 81 px frame through its centre: image x ->
+    /// world x, image y (depth) -> world -z (the beam), 0.5 mm pixels, image top at z = 20.
+    fn sphere_and_frame() -> (Mesh, DMat4) {
         let frame = DMat4::from_cols(
             glam::DVec4::new(0.5, 0.0, 0.0, 0.0),
             glam::DVec4::new(0.0, 0.0, -0.5, 0.0),
             glam::DVec4::new(0.0, 1.0, 0.0, 0.0),
             glam::DVec4::new(-20.0, 0.0, 20.0, 1.0),
         );
+        (icosphere(DVec3::ZERO, 10.0, 4), frame)
+    }
+
+    /// One frame through the centre of a sphere, beam along -z: only the top and bottom caps within
+    /// 60 degrees of the beam axis and inside the image count.
+    #[test]
+    fn mask_keeps_the_swept_caps_facing_the_beam() {
+        let (sphere, frame) = sphere_and_frame();
         let mask = swept_beam_facing_mask(&sphere, &[frame], 81, 81, None, 1.5, 60.0);
         let kept: Vec<usize> = (0..mask.len()).filter(|&i| mask[i]).collect();
         assert!(!kept.is_empty());
@@ -864,13 +852,7 @@ mod tests {
     /// bottom one, so it is complete on the probe side and about half complete on either side.
     #[test]
     fn swept_facing_score_counts_the_side_facing_the_probe() {
-        let sphere = icosphere(DVec3::ZERO, 10.0, 4);
-        let frame = DMat4::from_cols(
-            glam::DVec4::new(0.5, 0.0, 0.0, 0.0),
-            glam::DVec4::new(0.0, 0.0, -0.5, 0.0),
-            glam::DVec4::new(0.0, 1.0, 0.0, 0.0),
-            glam::DVec4::new(-20.0, 0.0, 20.0, 1.0),
-        );
+        let (sphere, frame) = sphere_and_frame();
         let mut upper = sphere.clone();
         let keep: Vec<bool> = upper
             .triangles
@@ -878,7 +860,7 @@ mod tests {
             .map(|t| t.iter().all(|&v| upper.vertices[v as usize].z > -0.5))
             .collect();
         upper.retain_triangles(&keep);
-        let score = |mesh: &Mesh, side| {
+        let score_on = |mesh: &Mesh, frame: DMat4, side, angle_deg| {
             swept_facing_score(
                 mesh,
                 &sphere,
@@ -887,11 +869,11 @@ mod tests {
                 81,
                 None,
                 side,
-                60.0,
+                angle_deg,
                 &CompareOptions::default(),
             )
-            .unwrap()
         };
+        let score = |mesh: &Mesh, side| score_on(mesh, frame, side, 60.0).unwrap();
         let probe = score(&upper, FacingSide::Probe);
         let either = score(&upper, FacingSide::Either);
         assert_eq!(probe.truth_patches, 1);
@@ -912,37 +894,11 @@ mod tests {
                 ..whole_one
             }
         );
-        // The whole sphere covers both strips; nothing faces the beam within 60 degrees behind the
-        // frame's plane, and a bad angle is refused.
+        // The whole sphere covers both strips; a frame 100 mm away sweeps nothing, and a bad angle is
+        // refused.
         assert_eq!(score(&sphere, FacingSide::Either).patch_coverage.whole, 2);
         let far = DMat4::from_translation(DVec3::new(0.0, 100.0, 0.0)) * frame;
-        assert!(
-            swept_facing_score(
-                &sphere,
-                &sphere,
-                &[far],
-                81,
-                81,
-                None,
-                FacingSide::Either,
-                60.0,
-                &CompareOptions::default()
-            )
-            .is_err()
-        );
-        assert!(
-            swept_facing_score(
-                &sphere,
-                &sphere,
-                &[frame],
-                81,
-                81,
-                None,
-                FacingSide::Either,
-                0.0,
-                &CompareOptions::default()
-            )
-            .is_err()
-        );
+        assert!(score_on(&sphere, far, FacingSide::Either, 60.0).is_err());
+        assert!(score_on(&sphere, frame, FacingSide::Either, 0.0).is_err());
     }
 }
