@@ -456,56 +456,155 @@ impl Mesh {
         removed
     }
 
+    /// For every vertex, the triangles incident to it (faces with an index out of range are skipped).
+    fn incident_triangles(&self) -> Vec<Vec<u32>> {
+        let n = self.vertices.len();
+        let mut incident: Vec<Vec<u32>> = vec![Vec::new(); n];
+        for (f, t) in self.triangles.iter().enumerate() {
+            if t.iter().all(|&i| (i as usize) < n) {
+                for &i in t {
+                    incident[i as usize].push(f as u32);
+                }
+            }
+        }
+        incident
+    }
+
+    /// Groups the triangles `faces` around vertex `v` into fans (triangles sharing an edge at `v` belong
+    /// to one fan): for each face, the index (into `faces`) of its fan's root; the roots, sorted.
+    fn fans_around(&self, v: u32, faces: &[u32]) -> (Vec<usize>, Vec<usize>) {
+        let mut parent: Vec<usize> = (0..faces.len()).collect();
+        let mut by_neighbour: Vec<(u32, usize)> = Vec::new();
+        for (k, &f) in faces.iter().enumerate() {
+            for &x in &self.triangles[f as usize] {
+                if x != v {
+                    by_neighbour.push((x, k));
+                }
+            }
+        }
+        by_neighbour.sort_unstable();
+        for pair in by_neighbour.windows(2) {
+            if pair[0].0 == pair[1].0 {
+                let (a, b) = (
+                    find_root(&mut parent, pair[0].1),
+                    find_root(&mut parent, pair[1].1),
+                );
+                if a != b {
+                    parent[a.max(b)] = a.min(b);
+                }
+            }
+        }
+        let roots: Vec<usize> = (0..faces.len())
+            .map(|k| find_root(&mut parent, k))
+            .collect();
+        let mut fans = roots.clone();
+        fans.sort_unstable();
+        fans.dedup();
+        (roots, fans)
+    }
+
+    /// Joins the two fans of a vertex where two pieces of a surface touch at that vertex alone: one
+    /// triangle across the narrower of the two wedges between the fans (from one fan's boundary edge
+    /// at the vertex to the other's), where that triangle's far edge is at most `max_gap_mm` long and
+    /// it faces the way both fans do (which must agree). The pieces then form one surface, joined
+    /// along edges, instead of two that touch at a point; a pinch that does not qualify (three or more
+    /// fans, a closed fan, a wide or folded wedge) is left for [`Mesh::split_pinched_vertices`].
+    /// Returns how many vertices were joined. No vertex is added or moved.
+    pub fn join_pinched_fans(&mut self, max_gap_mm: f64) -> usize {
+        let n = self.vertices.len();
+        let incident = self.incident_triangles();
+        // Vertices a join has used: their fans change, so they are not considered again in this pass.
+        let mut used = vec![false; n];
+        let mut added = Vec::new();
+        for v in 0..n {
+            let faces = &incident[v];
+            if used[v] || faces.len() < 2 {
+                continue;
+            }
+            let (roots, fans) = self.fans_around(v as u32, faces);
+            if fans.len() != 2 {
+                continue;
+            }
+            // Per fan: its one boundary edge out of v (v -> out) and one into v (into -> v), and its
+            // area-weighted normal.
+            let open_fan = |fan: usize| -> Option<(u32, u32, DVec3)> {
+                let (mut outs, mut ins, mut normal) = (Vec::new(), Vec::new(), DVec3::ZERO);
+                for (k, &f) in faces.iter().enumerate() {
+                    if roots[k] != fan {
+                        continue;
+                    }
+                    let t = self.triangles[f as usize];
+                    let i = t.iter().position(|&x| x as usize == v)?;
+                    outs.push(t[(i + 1) % 3]);
+                    ins.push(t[(i + 2) % 3]);
+                    let [a, b, c] = t.map(|x| self.vertices[x as usize]);
+                    normal += (b - a).cross(c - a);
+                }
+                let out: Vec<u32> = outs.iter().copied().filter(|x| !ins.contains(x)).collect();
+                let into: Vec<u32> = ins.iter().copied().filter(|x| !outs.contains(x)).collect();
+                (out.len() == 1 && into.len() == 1).then(|| (out[0], into[0], normal))
+            };
+            let (Some((a_out, a_in, na)), Some((b_out, b_in, nb))) =
+                (open_fan(fans[0]), open_fan(fans[1]))
+            else {
+                continue;
+            };
+            if na.normalize_or_zero().dot(nb.normalize_or_zero()) < 0.5 {
+                continue;
+            }
+            let p = |i: u32| self.vertices[i as usize];
+            // (a_out, v, b_in) closes the wedge from A's outgoing boundary to B's incoming one; (b_out,
+            // v, a_in) the other wedge. Both keep the winding: each shares a boundary edge of each fan,
+            // traversed the other way.
+            let mut candidates = [
+                (p(a_out).distance(p(b_in)), [a_out, v as u32, b_in]),
+                (p(b_out).distance(p(a_in)), [b_out, v as u32, a_in]),
+            ];
+            candidates.sort_by(|x, y| x.0.total_cmp(&y.0));
+            for (gap, t) in candidates {
+                let (x, y) = (t[0], t[2]);
+                // Written so that a NaN gap or bound never joins.
+                let narrow = gap <= max_gap_mm;
+                if !narrow || x == y || used[x as usize] || used[y as usize] {
+                    continue;
+                }
+                // The far edge must be new, or the join would make it non-manifold.
+                if incident[x as usize]
+                    .iter()
+                    .any(|&f| self.triangles[f as usize].contains(&y))
+                {
+                    continue;
+                }
+                let [a, b, c] = t.map(p);
+                let nt = (b - a).cross(c - a);
+                if nt.length() <= 1e-12 || nt.dot(na) <= 0.0 || nt.dot(nb) <= 0.0 {
+                    continue;
+                }
+                added.push(t);
+                for i in t {
+                    used[i as usize] = true;
+                }
+                break;
+            }
+        }
+        let joined = added.len();
+        self.triangles.extend(added);
+        joined
+    }
+
     /// Gives every fan of triangles around a pinched vertex its own copy of the vertex, so a mesh whose
     /// edges are manifold becomes a manifold (with boundary). Pinches arise where clipping to the region
     /// of trust cuts a surface so that two pieces touch at a single vertex. Returns how many vertices
     /// were added.
     pub fn split_pinched_vertices(&mut self) -> usize {
         let n = self.vertices.len();
-        let mut incident: Vec<Vec<u32>> = vec![Vec::new(); n];
-        for (f, t) in self.triangles.iter().enumerate() {
-            for &i in t {
-                if (i as usize) < n {
-                    incident[i as usize].push(f as u32);
-                }
-            }
-        }
+        let incident = self.incident_triangles();
         let mut added = 0;
-        let mut parent: Vec<usize> = Vec::new();
-        let mut first_by_neighbour: Vec<(u32, usize)> = Vec::new();
         for (v, faces) in incident.iter().enumerate() {
             if faces.len() < 2 {
                 continue;
             }
-            parent.clear();
-            parent.extend(0..faces.len());
-            // Triangles around v sharing an edge (v, x) belong to one fan.
-            first_by_neighbour.clear();
-            for (k, &f) in faces.iter().enumerate() {
-                for &x in &self.triangles[f as usize] {
-                    if x as usize != v {
-                        first_by_neighbour.push((x, k));
-                    }
-                }
-            }
-            first_by_neighbour.sort_unstable();
-            for pair in first_by_neighbour.windows(2) {
-                if pair[0].0 == pair[1].0 {
-                    let (a, b) = (
-                        find_root(&mut parent, pair[0].1),
-                        find_root(&mut parent, pair[1].1),
-                    );
-                    if a != b {
-                        parent[a.max(b)] = a.min(b);
-                    }
-                }
-            }
-            let roots: Vec<usize> = (0..faces.len())
-                .map(|k| find_root(&mut parent, k))
-                .collect();
-            let mut fans: Vec<usize> = roots.clone();
-            fans.sort_unstable();
-            fans.dedup();
+            let (roots, fans) = self.fans_around(v as u32, faces);
             // The fan holding the first incident triangle keeps v; every other fan gets a copy.
             for &fan in fans.iter().skip(1) {
                 let copy = self.vertices.len() as u32;
@@ -810,6 +909,52 @@ mod tests {
         let t = m.topology();
         assert_eq!(t.degenerate_triangles, 1);
         assert_eq!(t.duplicate_triangles, 1);
+    }
+
+    /// Two flat fans around the origin (normal +z), one over 0-90 degrees and one over 120-210, so
+    /// they touch at the origin alone; `tilt` turns the second about the x axis.
+    fn two_fans_touching_at_a_vertex(tilt_deg: f64) -> Mesh {
+        let rot = glam::DQuat::from_rotation_x(tilt_deg.to_radians());
+        let at = |deg: f64, second: bool| {
+            let p = DVec3::new(deg.to_radians().cos(), deg.to_radians().sin(), 0.0);
+            if second { rot * p } else { p }
+        };
+        let vertices = vec![
+            DVec3::ZERO,
+            at(0.0, false),
+            at(45.0, false),
+            at(90.0, false),
+            at(120.0, true),
+            at(165.0, true),
+            at(210.0, true),
+        ];
+        Mesh {
+            vertices,
+            normals: vec![],
+            triangles: vec![[0, 1, 2], [0, 2, 3], [0, 4, 5], [0, 5, 6]],
+        }
+    }
+
+    #[test]
+    fn pinched_fans_are_joined_across_the_narrow_wedge() {
+        let mut m = two_fans_touching_at_a_vertex(0.0);
+        let t = m.topology();
+        assert_eq!((t.components, t.nonmanifold_vertices), (2, 1));
+        // The wedge from 90 to 120 degrees is 2 sin(15 deg) = 0.52 wide, the other 1.93.
+        assert_eq!(m.clone().join_pinched_fans(0.5), 0);
+        assert_eq!(m.join_pinched_fans(0.6), 1);
+        assert_eq!(m.triangles.last(), Some(&[4, 0, 3]));
+        let t = m.topology();
+        assert!(t.is_oriented_manifold(), "{t:?}");
+        assert_eq!((t.components, t.nonmanifold_vertices), (1, 0));
+        // Joined once, nothing is pinched any more.
+        assert_eq!(m.join_pinched_fans(0.6), 0);
+        assert_eq!(m.split_pinched_vertices(), 0);
+        // Fans that do not continue one another (the second turned 90 degrees) are not joined.
+        let mut folded = two_fans_touching_at_a_vertex(90.0);
+        assert_eq!(folded.join_pinched_fans(10.0), 0);
+        assert_eq!(folded.split_pinched_vertices(), 1);
+        assert_eq!(folded.topology().components, 2);
     }
 
     #[test]

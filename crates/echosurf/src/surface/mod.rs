@@ -128,7 +128,11 @@ pub struct LevelStats {
     pub refused_merges: usize,
     /// Triangles still folded over (winding against the field normals) after untangling; 0 normally.
     pub folded_triangles: usize,
-    /// Vertices duplicated because trust clipping left two surface pieces touching at them.
+    /// Vertices where two pieces of the surface touched and a triangle across the gap joined them
+    /// ([`Mesh::join_pinched_fans`]).
+    pub joined_pinched_vertices: usize,
+    /// Vertices duplicated because trust clipping left two surface pieces touching at them (and they
+    /// could not be joined).
     pub split_pinched_vertices: usize,
     /// Vertices whose Newton iteration did not reach `surface_tolerance_mm` (left at their best position).
     pub unconverged_vertices: usize,
@@ -231,6 +235,7 @@ pub fn extract_surfaces_with_stats(
             triangles: merged.triangles.len(),
             refused_merges: merged.refused_merges,
             unconverged_vertices: 0,
+            joined_pinched_vertices: 0,
             split_pinched_vertices: 0,
             folded_triangles: 0,
         };
@@ -253,7 +258,9 @@ pub fn extract_surfaces_with_stats(
             normals,
             triangles: merged.triangles,
         };
-        // Clipping to the region of trust can leave two pieces touching at one vertex.
+        // Clipping to the region of trust can leave two pieces touching at one vertex: joined across
+        // a gap of up to two lattice cells where they continue one another, else split.
+        level_stats.joined_pinched_vertices = mesh.join_pinched_fans(2.0 * h);
         level_stats.split_pinched_vertices = mesh.split_pinched_vertices();
         level_stats.vertices = mesh.vertices.len();
         meshes.push(mesh);
