@@ -410,8 +410,91 @@ pub struct SweptFacingScore {
     pub patch_coverage: PatchCoverage,
 }
 
+/// The part of a truth that the frames sweep and whose chosen side faces their beam within an angle,
+/// with its patches: found once per sweep and truth, then [`SweptFacingTruth::score`] for each mesh.
+#[derive(Debug, Clone)]
+pub struct SweptFacingTruth {
+    max_angle_deg: f64,
+    side: FacingSide,
+    plane_distance_mm: f64,
+    mask: Vec<bool>,
+    patches: Mesh,
+}
+
+impl SweptFacingTruth {
+    /// The triangles of `truth` that the frames `image_to_world` (of `width` x `height` px, `clip`ped)
+    /// sweep and whose `side` faces their beam within `max_angle_deg`; an error if there are none.
+    pub fn new(
+        truth: &Mesh,
+        image_to_world: &[DMat4],
+        width: usize,
+        height: usize,
+        clip: Option<ClipRect>,
+        side: FacingSide,
+        max_angle_deg: f64,
+    ) -> Result<SweptFacingTruth> {
+        if !(max_angle_deg > 0.0 && max_angle_deg <= 90.0) {
+            return Err(Error::InvalidInput(format!(
+                "facing angle must be in (0, 90] degrees, got {max_angle_deg}"
+            )));
+        }
+        let plane_distance_mm = median_spacing(image_to_world).unwrap_or(1.5).max(1.5);
+        let cosines = swept_beam_cosines(
+            truth,
+            image_to_world,
+            width,
+            height,
+            clip,
+            plane_distance_mm,
+            side,
+        );
+        let mask = facing_within(&cosines, max_angle_deg);
+        if !mask.iter().any(|&m| m) {
+            return Err(Error::InvalidInput(format!(
+                "no truth triangle is swept by a frame and faces its beam within {max_angle_deg} \
+                 degrees (do the truth and the sequence share a world frame?)"
+            )));
+        }
+        let patches = patches_of(truth, &mask, MIN_PATCH_AREA_MM2);
+        Ok(SweptFacingTruth {
+            max_angle_deg,
+            side,
+            plane_distance_mm,
+            mask,
+            patches,
+        })
+    }
+
+    /// How `mesh` covers this part of `truth` (the mesh the selection was made of).
+    pub fn score(
+        &self,
+        mesh: &Mesh,
+        truth: &Mesh,
+        compare: &CompareOptions,
+    ) -> Result<SweptFacingScore> {
+        let comparison = compare_meshes(
+            mesh,
+            truth,
+            &CompareOptions {
+                truth_mask: Some(self.mask.clone()),
+                ..compare.clone()
+            },
+        )?;
+        Ok(SweptFacingScore {
+            max_angle_deg: self.max_angle_deg,
+            side: self.side,
+            plane_distance_mm: self.plane_distance_mm,
+            truth_area_mm2: comparison.truth_compared_area_mm2,
+            completeness_1mm: comparison.completeness_1mm,
+            truth_patches: patch_count(&self.patches),
+            patch_coverage: patch_coverage(mesh, &self.patches, MIN_PATCH_AREA_MM2),
+        })
+    }
+}
+
 /// Scores `mesh` on the part of `truth` that the frames `image_to_world` (of `width` x `height` px,
-/// `clip`ped) sweep and whose `side` faces their beam within `max_angle_deg`.
+/// `clip`ped) sweep and whose `side` faces their beam within `max_angle_deg`
+/// ([`SweptFacingTruth`] for one mesh).
 #[allow(clippy::too_many_arguments)]
 pub fn swept_facing_score(
     mesh: &Mesh,
@@ -424,46 +507,16 @@ pub fn swept_facing_score(
     max_angle_deg: f64,
     compare: &CompareOptions,
 ) -> Result<SweptFacingScore> {
-    if !(max_angle_deg > 0.0 && max_angle_deg <= 90.0) {
-        return Err(Error::InvalidInput(format!(
-            "facing angle must be in (0, 90] degrees, got {max_angle_deg}"
-        )));
-    }
-    let plane_distance_mm = median_spacing(image_to_world).unwrap_or(1.5).max(1.5);
-    let cosines = swept_beam_cosines(
+    SweptFacingTruth::new(
         truth,
         image_to_world,
         width,
         height,
         clip,
-        plane_distance_mm,
         side,
-    );
-    let mask = facing_within(&cosines, max_angle_deg);
-    if !mask.iter().any(|&m| m) {
-        return Err(Error::InvalidInput(format!(
-            "no truth triangle is swept by a frame and faces its beam within {max_angle_deg} degrees \
-             (do the truth and the sequence share a world frame?)"
-        )));
-    }
-    let patches = patches_of(truth, &mask, MIN_PATCH_AREA_MM2);
-    let comparison = compare_meshes(
-        mesh,
-        truth,
-        &CompareOptions {
-            truth_mask: Some(mask),
-            ..compare.clone()
-        },
-    )?;
-    Ok(SweptFacingScore {
         max_angle_deg,
-        side,
-        plane_distance_mm,
-        truth_area_mm2: comparison.truth_compared_area_mm2,
-        completeness_1mm: comparison.completeness_1mm,
-        truth_patches: patch_count(&patches),
-        patch_coverage: patch_coverage(mesh, &patches, MIN_PATCH_AREA_MM2),
-    })
+    )?
+    .score(mesh, truth, compare)
 }
 
 /// The routes compared, with the sheet each outputs: the RBF route's iso-surface (the paper's and
@@ -496,6 +549,17 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
         )));
     }
     let strong_mask = facing_within(&cosines, STRONG_ECHO_DEG);
+    // No truth facing the probe so is not a failure of a route: that column stays empty.
+    let probe_facing = SweptFacingTruth::new(
+        &case.truth,
+        &case.true_image_to_world,
+        case.sequence.width,
+        case.sequence.height,
+        case.calibration.clip,
+        FacingSide::Probe,
+        PROBE_FACING_DEG,
+    )
+    .ok();
     // The patches once per case, for their count and for every route's coverage of them.
     let patches = patches_of(&case.truth, &strong_mask, MIN_PATCH_AREA_MM2);
     let truth_patches = patch_count(&patches);
@@ -583,22 +647,9 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
                             Err(e) => result.error = Some(e.to_string()),
                         }
                     }
-                    // No truth facing the probe so is not a failure of the route: the column stays empty.
-                    result.probe_facing = swept_facing_score(
-                        &mesh,
-                        &case.truth,
-                        &case.true_image_to_world,
-                        case.sequence.width,
-                        case.sequence.height,
-                        case.calibration.clip,
-                        FacingSide::Probe,
-                        PROBE_FACING_DEG,
-                        &CompareOptions {
-                            truth_mask: None,
-                            ..compare.clone()
-                        },
-                    )
-                    .ok();
+                    result.probe_facing = probe_facing
+                        .as_ref()
+                        .and_then(|truth| truth.score(&mesh, &case.truth, &compare).ok());
                 }
             }
         }
