@@ -263,6 +263,7 @@ pub fn extract_surfaces_with_stats(
         level_stats.joined_pinched_vertices = mesh.join_pinched_fans(2.0 * h);
         level_stats.split_pinched_vertices = mesh.split_pinched_vertices();
         level_stats.vertices = mesh.vertices.len();
+        level_stats.triangles = mesh.triangles.len();
         meshes.push(mesh);
         stats.levels.push(level_stats);
     }
