@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use echosurf::bench::{FacingSide, SweptFacingScore, swept_facing_score};
+use echosurf::bench::{FacingSide, SweptFacingScore, SweptFacingTruth};
 use echosurf::io;
 use echosurf::mesh::MeshTopology;
 use echosurf::metrics::{CompareOptions, Comparison, SurfaceDistances, compare_meshes};
@@ -95,8 +95,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 path,
             )?;
             let image_to_world: Vec<_> = poses.poses.iter().map(|p| p.image_to_world).collect();
-            let score = swept_facing_score(
-                &mesh,
+            let score = SweptFacingTruth::new(
                 &truth,
                 &image_to_world,
                 sequence.width,
@@ -104,8 +103,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 calibration.as_ref().and_then(|c| c.clip),
                 args.facing.into(),
                 args.facing_deg,
-                &options,
             )
+            .and_then(|swept| swept.score(&mesh, &truth, &options))
             .with_context(|| format!("scoring the truth swept by {}", path.display()))?;
             Some(score)
         }

@@ -395,7 +395,7 @@ pub fn patch_coverage(mesh: &Mesh, patches: &Mesh, min_area_mm2: f64) -> PatchCo
 
 /// The swept truth that faces the beam within an angle, and how a mesh covers it: completeness within
 /// 1 mm and the mesh's pieces per echoing patch ([`PatchCoverage`]). For any sweep whose truth lies in
-/// the same world frame as its poses (`compare --sequence`).
+/// the same world frame as its poses (`compare --sequence`), from [`SweptFacingTruth::score`].
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct SweptFacingScore {
     pub max_angle_deg: f64,
@@ -490,33 +490,6 @@ impl SweptFacingTruth {
             patch_coverage: patch_coverage(mesh, &self.patches, MIN_PATCH_AREA_MM2),
         })
     }
-}
-
-/// Scores `mesh` on the part of `truth` that the frames `image_to_world` (of `width` x `height` px,
-/// `clip`ped) sweep and whose `side` faces their beam within `max_angle_deg`
-/// ([`SweptFacingTruth`] for one mesh).
-#[allow(clippy::too_many_arguments)]
-pub fn swept_facing_score(
-    mesh: &Mesh,
-    truth: &Mesh,
-    image_to_world: &[DMat4],
-    width: usize,
-    height: usize,
-    clip: Option<ClipRect>,
-    side: FacingSide,
-    max_angle_deg: f64,
-    compare: &CompareOptions,
-) -> Result<SweptFacingScore> {
-    SweptFacingTruth::new(
-        truth,
-        image_to_world,
-        width,
-        height,
-        clip,
-        side,
-        max_angle_deg,
-    )?
-    .score(mesh, truth, compare)
 }
 
 /// The routes compared, with the sheet each outputs: the RBF route's iso-surface (the paper's and
@@ -902,7 +875,7 @@ mod tests {
     /// outward normals. A mesh of the sphere's upper half covers the top strip whole and misses the
     /// bottom one, so it is complete on the probe side and about half complete on either side.
     #[test]
-    fn swept_facing_score_counts_the_side_facing_the_probe() {
+    fn swept_facing_truth_counts_the_side_facing_the_probe() {
         let (sphere, frame) = sphere_and_frame();
         let mut upper = sphere.clone();
         let keep: Vec<bool> = upper
@@ -912,15 +885,9 @@ mod tests {
             .collect();
         upper.retain_triangles(&keep);
         let score_on = |mesh: &Mesh, frame: DMat4, side, angle_deg| {
-            swept_facing_score(
+            SweptFacingTruth::new(&sphere, &[frame], 81, 81, None, side, angle_deg)?.score(
                 mesh,
                 &sphere,
-                &[frame],
-                81,
-                81,
-                None,
-                side,
-                angle_deg,
                 &CompareOptions::default(),
             )
         };
