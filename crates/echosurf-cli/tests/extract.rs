@@ -231,6 +231,18 @@ fn extract_refuses_bad_requests_without_writing() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("not a number"));
 
+    // A negative gap to bridge is refused by name.
+    let out = extract(
+        &seq,
+        &config,
+        &mesh,
+        &[&small[..], &["--bridge-gap=-1"]].concat(),
+    );
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--bridge-gap"), "{err}");
+    assert!(!mesh.exists());
+
     // A device set without an Image->Probe transform names the file.
     let bad_config = dir.path().join("no_calibration.xml");
     std::fs::write(

@@ -3,7 +3,7 @@
 //! angle between the truth's normal and the nearest sweeping frame's beam, and per facing sign (outward
 //! normal against the beam: the side facing the probe). Environment overrides: `MAXS` (sample budget),
 //! `W` (smoothing), `BIN` (sample block mm), `ECHO` (echo margin mm, 0 = uniform thinning), `ISO`, `SHEET=iso|ridge` (default: auto, as `extract`),
-//! `MINCOMP` (smallest piece kept, mm^2), `MINFRAMES` (least frames echoing a piece), `CHAIN=1` (chained edgels), `BACK=1` (backward band pass), `SEED`, and for the ridge sheet
+//! `MINCOMP` (smallest piece kept, mm^2), `MINFRAMES` (least frames echoing a piece), `BRIDGE` (largest gap between pieces joined, mm, 0 = off), `CHAIN=1` (chained edgels), `BACK=1` (backward band pass), `SEED`, and for the ridge sheet
 //! `SHEET_H` (smoothing mm), `SHEET_REACH` (mm), `SHEET_BRIDGE` (mm, 0 = off), `HOLE` (largest hole closed,
 //! perimeter mm).
 //! `cargo run --release --example completeness_by_angle -- duck [mesh.ply]`
@@ -72,6 +72,9 @@ fn main() -> echosurf::Result<()> {
     }
     if env("CHAIN") == Some(1.0) {
         options.segment = echosurf::segment::SegmentOptions::chained();
+    }
+    if let Some(v) = env("BRIDGE") {
+        options.bridge_gap_mm = v;
     }
     if env("BACK") == Some(1.0) {
         options.segment.backward_pass = true;

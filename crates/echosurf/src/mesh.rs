@@ -11,6 +11,17 @@ pub struct Mesh {
     pub triangles: Vec<[u32; 3]>,
 }
 
+/// Distance from `p` to the segment from `a` to `b`.
+fn distance_to_segment(p: DVec3, a: DVec3, b: DVec3) -> f64 {
+    let ab = b - a;
+    let t = if ab.length_squared() > 0.0 {
+        ((p - a).dot(ab) / ab.length_squared()).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    p.distance(a + t * ab)
+}
+
 /// Root of `i` in a union-find forest, halving the path on the way.
 fn find_root(parent: &mut [usize], mut i: usize) -> usize {
     while parent[i] != i {
@@ -592,6 +603,180 @@ impl Mesh {
         joined
     }
 
+    /// Joins pieces of a surface whose boundaries pass within `max_gap_mm` of each other where they
+    /// continue one another, and closes the seam between them. A bridge starts at the narrowest pair
+    /// of facing boundary edges of two different pieces (a0 -> a1 on one, b0 -> b1 on the other, a0
+    /// near b1 and a1 near b0) with a quad of two triangles, and is zipped along both boundaries from
+    /// there (one triangle at a time, taking the shorter new edge, as contour stitching does) while
+    /// the vertex each triangle takes lies within `max_gap_mm` of the other boundary. Every triangle
+    /// must face the way both pieces do there (normals' dot at least 0.5): a gap across the tangent
+    /// plane (a second wall beneath) cannot be bridged, since the quad would stand at right angles to
+    /// both pieces. The narrowest gaps go first, and a pair of pieces (or of groups already bridged)
+    /// is bridged once, along one seam, so no handle is made. The new triangles traverse each
+    /// boundary edge they close the other way and extend single fans, so an oriented manifold stays
+    /// one; no vertex is added or moved. A gap bound that is not a positive finite distance bridges
+    /// nothing. Returns the bridges made.
+    pub fn bridge_near_pieces(&mut self, max_gap_mm: f64) -> usize {
+        let n = self.vertices.len();
+        // Written so that a NaN bound bridges nothing.
+        if !(max_gap_mm > 0.0 && max_gap_mm.is_finite()) || self.triangles.is_empty() {
+            return 0;
+        }
+        let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
+        let mut undirected: std::collections::HashMap<(u32, u32), usize> =
+            std::collections::HashMap::with_capacity(self.triangles.len() * 3);
+        for t in self.triangles.iter().filter(|t| valid(t)) {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                *undirected.entry((a.min(b), a.max(b))).or_default() += 1;
+            }
+        }
+        // Boundary edges as their triangle runs them, in triangle order (not the map's). A vertex
+        // starting or ending two of them (a pinch) is left alone.
+        let mut boundary: Vec<(u32, u32, usize)> = Vec::new();
+        let mut from: std::collections::HashMap<u32, (u32, usize)> = Default::default();
+        let mut to: std::collections::HashMap<u32, (u32, usize)> = Default::default();
+        let mut ambiguous = vec![false; n];
+        for (f, t) in self.triangles.iter().enumerate().filter(|(_, t)| valid(t)) {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                if a != b && undirected[&(a.min(b), a.max(b))] == 1 {
+                    boundary.push((a, b, f));
+                    ambiguous[a as usize] |= from.insert(a, (b, f)).is_some();
+                    ambiguous[b as usize] |= to.insert(b, (a, f)).is_some();
+                }
+            }
+        }
+        boundary.retain(|&(a, b, _)| !ambiguous[a as usize] && !ambiguous[b as usize]);
+        let p = |i: u32| self.vertices[i as usize];
+        let unit_normal = |t: [u32; 3]| {
+            let [a, b, c] = t.map(p);
+            (b - a).cross(c - a).normalize_or_zero()
+        };
+        let midpoints: Vec<DVec3> = boundary
+            .iter()
+            .map(|&(a, b, _)| 0.5 * (p(a) + p(b)))
+            .collect();
+        let Some(buckets) = crate::spatial::PointBuckets::new(&midpoints, max_gap_mm) else {
+            return 0;
+        };
+        let component = self.triangle_components();
+        // (summed gap, edge i, edge j, the quad's two triangles)
+        let mut candidates: Vec<(f64, usize, usize, [[u32; 3]; 2])> = Vec::new();
+        for (i, &(a0, a1, fa)) in boundary.iter().enumerate() {
+            let na = unit_normal(self.triangles[fa]);
+            buckets.visit_within(midpoints[i], max_gap_mm, &mut |j, _| {
+                let (b0, b1, fb) = boundary[j];
+                // Each pair once; the condition below is symmetric in the two edges.
+                if j <= i || component[fa] == component[fb] {
+                    return true;
+                }
+                let (gap_a0, gap_a1) = (p(a0).distance(p(b1)), p(a1).distance(p(b0)));
+                if !(gap_a0 <= max_gap_mm && gap_a1 <= max_gap_mm) {
+                    return true;
+                }
+                let nb = unit_normal(self.triangles[fb]);
+                if na.dot(nb) < 0.5 {
+                    return true;
+                }
+                // The quad a1 -> a0 -> b1 -> b0, cut along its shorter diagonal if that faces right.
+                let along_a1_b1 = [[a1, a0, b1], [a1, b1, b0]];
+                let along_a0_b0 = [[a0, b1, b0], [a0, b0, a1]];
+                let mut cuts = [
+                    (p(a1).distance(p(b1)), along_a1_b1),
+                    (p(a0).distance(p(b0)), along_a0_b0),
+                ];
+                cuts.sort_by(|x, y| x.0.total_cmp(&y.0));
+                let faces_alike = |t: [u32; 3]| {
+                    let nt = unit_normal(t);
+                    nt.dot(na) >= 0.5 && nt.dot(nb) >= 0.5
+                };
+                if let Some((_, quad)) = cuts
+                    .into_iter()
+                    .find(|(_, quad)| quad.iter().all(|&t| faces_alike(t)))
+                {
+                    candidates.push((gap_a0 + gap_a1, i, j, quad));
+                }
+                true
+            });
+        }
+        candidates.sort_by(|x, y| x.0.total_cmp(&y.0).then((x.1, x.2).cmp(&(y.1, y.2))));
+        let mut group: Vec<usize> = (0..self.triangles.len()).collect();
+        let mut used = ambiguous;
+        let mut added: Vec<[u32; 3]> = Vec::new();
+        let mut bridges = 0;
+        for (_, i, j, quad) in candidates {
+            let (a0, a1, fa) = boundary[i];
+            let (b0, b1, fb) = boundary[j];
+            let (ga, gb) = (
+                find_root(&mut group, component[fa]),
+                find_root(&mut group, component[fb]),
+            );
+            if ga == gb || [a0, a1, b0, b1].iter().any(|&v| used[v as usize]) {
+                continue;
+            }
+            group[ga.max(gb)] = ga.min(gb);
+            for v in [a0, a1, b0, b1] {
+                used[v as usize] = true;
+            }
+            added.extend(quad);
+            bridges += 1;
+            // Zip on from each side of the quad. Towards a1: the front is the new edge b0 -> a1; the
+            // next triangle runs a1 -> b0 and closes either the first piece's boundary edge out of
+            // a1 or the second's into b0. Towards a0: the front a0 -> b1, the next triangle runs
+            // b1 -> a0 and closes the first piece's edge into a0 or the second's out of b1.
+            for towards_a1 in [true, false] {
+                // x advances along its piece's boundary edges (out of x), y against them (into y),
+                // and every new triangle runs x -> y.
+                let (mut x, mut y) = if towards_a1 { (a1, b0) } else { (b1, a0) };
+                let mut previous = unit_normal(if towards_a1 { quad[1] } else { quad[0] });
+                for _ in 0..boundary.len() {
+                    let next_x = from.get(&x).copied();
+                    let next_y = to.get(&y).copied();
+                    // Distance from a vertex to the other side's front: its edge on from the front
+                    // vertex (or the vertex alone at the end of a boundary).
+                    let to_front = |v: u32, front: u32, on: Option<(u32, usize)>| match on {
+                        Some((w, _)) => distance_to_segment(p(v), p(front), p(w)),
+                        None => p(v).distance(p(front)),
+                    };
+                    // (new triangle, new edge's length, the vertex it takes, the triangle whose
+                    // boundary edge it closes, whether x advances)
+                    let mut options: Vec<([u32; 3], f64, u32, usize, bool)> = Vec::new();
+                    if let Some((v, f)) = next_x
+                        && to_front(v, y, next_y) <= max_gap_mm
+                    {
+                        options.push(([x, y, v], p(v).distance(p(y)), v, f, true));
+                    }
+                    if let Some((v, f)) = next_y
+                        && to_front(v, x, next_x) <= max_gap_mm
+                    {
+                        options.push(([x, y, v], p(v).distance(p(x)), v, f, false));
+                    }
+                    options.retain(|&(t, _, v, f, _)| {
+                        let nt = unit_normal(t);
+                        !used[v as usize]
+                            && nt.dot(previous) >= 0.5
+                            && nt.dot(unit_normal(self.triangles[f])) >= 0.5
+                    });
+                    options.sort_by(|u, w| u.1.total_cmp(&w.1));
+                    let Some(&(t, _, v, _, advances_x)) = options.first() else {
+                        break;
+                    };
+                    added.push(t);
+                    used[v as usize] = true;
+                    previous = unit_normal(t);
+                    if advances_x {
+                        x = v;
+                    } else {
+                        y = v;
+                    }
+                }
+            }
+        }
+        self.triangles.extend(added);
+        bridges
+    }
+
     /// Gives every fan of triangles around a pinched vertex its own copy of the vertex, so a mesh whose
     /// edges are manifold becomes a manifold (with boundary). Pinches arise where clipping to the region
     /// of trust cuts a surface so that two pieces touch at a single vertex. Returns how many vertices
@@ -933,6 +1118,67 @@ mod tests {
             normals: vec![],
             triangles: vec![[0, 1, 2], [0, 2, 3], [0, 4, 5], [0, 5, 6]],
         }
+    }
+
+    /// A flat strip of `cells` x 1 unit squares over x in [0, cells], y in [y0, y0 + 1], z = 0, wound
+    /// counter-clockwise seen from +z, with every vertex mapped by `place`.
+    fn strip(cells: u32, y0: f64, place: impl Fn(DVec3) -> DVec3) -> Mesh {
+        let mut m = Mesh::default();
+        for i in 0..=cells {
+            for j in 0..2 {
+                m.vertices
+                    .push(place(DVec3::new(i as f64, y0 + j as f64, 0.0)));
+            }
+        }
+        for i in 0..cells {
+            let (a, b, c, d) = (2 * i, 2 * i + 2, 2 * i + 3, 2 * i + 1);
+            m.triangles.push([a, b, c]);
+            m.triangles.push([a, c, d]);
+        }
+        m
+    }
+
+    #[test]
+    fn pieces_side_by_side_are_bridged_and_the_seam_closed() {
+        // Two strips 4 units long, 0.5 apart, in one plane.
+        let pair = |place: &dyn Fn(DVec3) -> DVec3| {
+            Mesh::merged([&strip(4, 0.0, |p| p), &strip(4, 1.5, place)])
+        };
+        let mut m = pair(&|p| p);
+        let before = m.area_mm2();
+        assert_eq!(m.topology().components, 2);
+        // A gap wider than the bound is left.
+        assert_eq!(m.clone().bridge_near_pieces(0.4), 0);
+        assert_eq!(m.bridge_near_pieces(0.6), 1);
+        let t = m.topology();
+        assert!(t.is_oriented_manifold(), "{t:?}");
+        // One disc (no handle), and the whole 4 x 0.5 seam is closed.
+        assert_eq!((t.components, t.euler_characteristic), (1, 1));
+        assert!(
+            (m.area_mm2() - before - 4.0 * 0.5).abs() < 1e-9,
+            "{}",
+            m.area_mm2()
+        );
+        // Bridged once: nothing left to join.
+        assert_eq!(m.bridge_near_pieces(0.6), 0);
+
+        // A second layer 0.5 beneath the first (the gap runs along the normal) is not bridged.
+        let mut stacked = Mesh::merged([
+            &strip(4, 0.0, |p| p),
+            &strip(4, 0.0, |p| p - DVec3::Z * 0.5),
+        ]);
+        assert_eq!(stacked.bridge_near_pieces(2.0), 0);
+        // Nor is a strip turned 90 degrees about the seam (a wall meeting the first at right angles).
+        let turned = |p: DVec3| DVec3::new(p.x, 1.5, p.y - 1.5);
+        let mut corner = pair(&turned);
+        assert_eq!(corner.bridge_near_pieces(2.0), 0);
+        // A strip running the other way round (facing -z) is not either.
+        let flipped = |p: DVec3| DVec3::new(p.x, 4.0 - p.y, 0.0);
+        let mut facing_away = pair(&flipped);
+        assert_eq!(facing_away.bridge_near_pieces(2.0), 0);
+        // A NaN or infinite bound bridges nothing.
+        assert_eq!(pair(&|p| p).bridge_near_pieces(f64::NAN), 0);
+        assert_eq!(pair(&|p| p).bridge_near_pieces(f64::INFINITY), 0);
     }
 
     #[test]

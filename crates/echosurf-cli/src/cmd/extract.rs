@@ -100,6 +100,10 @@ pub struct Args {
     /// sample block at or above the surface's level within 1 mm); 0 keeps every piece.
     #[arg(long, default_value_t = pipeline::DEFAULT_MIN_ECHO_FRAMES)]
     pub min_echo_frames: usize,
+    /// Join kept pieces whose boundaries pass within this distance (mm) of each other, facing each
+    /// other and facing alike, and close the seam between them; 0 joins nothing.
+    #[arg(long, default_value_t = pipeline::DEFAULT_BRIDGE_GAP_MM)]
+    pub bridge_gap: f64,
     /// Seed of the random decimation (and of everything else random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -237,7 +241,14 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
             used.min_echo_frames
         ),
     };
-    why + &weak + &unbacked
+    let bridged = match used.bridged_pieces {
+        0 => String::new(),
+        n => format!(
+            ", {n} piece{} joined to a neighbour across a gap",
+            if n == 1 { "" } else { "s" }
+        ),
+    };
+    why + &weak + &unbacked + &bridged
 }
 
 pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
@@ -318,6 +329,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             reach_mm: args.ridge_weak_reach,
         },
         min_echo_frames: args.min_echo_frames,
+        bridge_gap_mm: if args.bridge_gap.is_finite() && args.bridge_gap >= 0.0 {
+            args.bridge_gap
+        } else {
+            anyhow::bail!("--bridge-gap must be a distance in mm >= 0")
+        },
         min_component_area_mm2: match args.min_component_area {
             Some(a) if !(a.is_finite() && a >= 0.0) => {
                 anyhow::bail!("--min-component-area must be an area in mm^2 >= 0")

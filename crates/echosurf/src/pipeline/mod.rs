@@ -77,6 +77,10 @@ pub struct ExtractOptions {
     /// [`Mesh::remove_components_seen_in_few_frames`]; an echo is a kept sample block at or above the
     /// surface's level within [`ECHO_SUPPORT_RADIUS_MM`]). 0 keeps every piece.
     pub min_echo_frames: usize,
+    /// After the two checks above, pieces whose boundaries pass within this distance (mm) of each
+    /// other where they continue one another are joined and the seam between them closed
+    /// ([`Mesh::bridge_near_pieces`]). 0 joins nothing.
+    pub bridge_gap_mm: f64,
     /// Which surface to output: the iso-surface itself, or one sheet on each echo's ridge.
     pub sheet: Sheet,
     /// How the echo-ridge sheet is smoothed through the ridge points (`Sheet::EchoRidge` only).
@@ -106,6 +110,7 @@ impl Default for ExtractOptions {
             sample_bin_mm: 0.4,
             echo_margin_mm: Some(DEFAULT_ECHO_MARGIN_MM),
             min_echo_frames: DEFAULT_MIN_ECHO_FRAMES,
+            bridge_gap_mm: DEFAULT_BRIDGE_GAP_MM,
             sheet: Sheet::Auto,
             echo_sheet: SheetOptions::default(),
             weak_echoes: WeakEchoes::default(),
@@ -241,6 +246,9 @@ pub struct SheetUsed {
     /// pieces removed for it.
     pub min_echo_frames: usize,
     pub pieces_without_echoes: usize,
+    /// Seams made between kept pieces across gaps of up to [`ExtractOptions::bridge_gap_mm`]
+    /// ([`Mesh::bridge_near_pieces`]); each joins two pieces into one.
+    pub bridged_pieces: usize,
 }
 
 impl SheetUsed {
@@ -254,6 +262,7 @@ impl SheetUsed {
             min_component_area_mm2: 0.0,
             min_echo_frames: 0,
             pieces_without_echoes: 0,
+            bridged_pieces: 0,
         }
     }
 }
@@ -307,6 +316,17 @@ pub const DEFAULT_MIN_ECHO_FRAMES: usize = 3;
 /// An echo backs a piece of surface within this distance of one of its vertices: about a speckle cell
 /// plus the fit's smoothing, well inside the distance to another wall.
 pub const ECHO_SUPPORT_RADIUS_MM: f64 = 1.0;
+
+/// Kept pieces whose boundaries pass within this distance (mm) of each other, facing each other and
+/// facing alike, are joined by default (see [`ExtractOptions::bridge_gap_mm`]): the echo-ridge sheet
+/// itself bridges gaps of this size between echo points that lie on one plane
+/// ([`SheetOptions::bridge_mm`]), so a gap this narrow between two pieces that continue one another
+/// is not evidence of two walls. Measured with `examples/completeness_by_angle` (duck seeds 1-8, hand
+/// seeds 1-3): duck pieces 10 / 9 / 8 / 12 / 10 / 10 / 11 / 13 -> 6 / 6 / 6 / 8 / 8 / 9 / 10 / 8,
+/// hand 1 / 3 / 4 -> 1 / 2 / 4; completeness within 20 degrees of the beam the same (duck seed 8's
+/// inner wall 0.987 -> 0.988); mean to the truth within 0.001 mm, p95 the same or lower (by up to
+/// 0.004 mm). With 1 mm: duck 9 / 7 / 8 / 9 / 9 / 9 / 11 / 11, hand 1 / 3 / 4.
+pub const DEFAULT_BRIDGE_GAP_MM: f64 = 2.0;
 
 /// Echo-priority margin `extract` uses unless told otherwise (see [`ExtractOptions::echo_margin_mm`]).
 pub const DEFAULT_ECHO_MARGIN_MM: f64 = 1.0;
@@ -814,6 +834,10 @@ pub fn extract(
                     ECHO_SUPPORT_RADIUS_MM,
                     used.min_echo_frames,
                 );
+            }
+            // Only pieces that passed both checks are bridged: a crumb next to a wall stays a crumb.
+            if options.bridge_gap_mm.is_finite() && options.bridge_gap_mm > 0.0 {
+                used.bridged_pieces = mesh.bridge_near_pieces(options.bridge_gap_mm);
             }
         }
     });
