@@ -130,5 +130,16 @@ fn demo_writes_everything_and_its_ridge_sheet_is_accurate() {
         );
         assert_eq!(patches["split"], 0, "{side}: {swept}");
         assert_eq!(patches["missed"], 0, "{side}: {swept}");
+        // Each patch is listed with the one piece over it.
+        let listed = swept["patches"].as_array().unwrap();
+        assert_eq!(
+            listed.len() as u64,
+            swept["truth_patches"].as_u64().unwrap(),
+            "{side}: {swept}"
+        );
+        assert!(
+            listed.iter().all(|p| p["counted_pieces"] == 1),
+            "{side}: {swept}"
+        );
     }
 }

@@ -163,6 +163,39 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
         "probe-facing completeness {swept_completeness} (whole truth {completeness})"
     );
     assert!(probe["truth_patches"].as_u64().unwrap() >= 1);
+    // The table lists each patch that is not whole: a triangle far from the sphere misses them all.
+    let far = dir.path().join("far.ply");
+    echosurf::io::write_mesh(
+        &far,
+        &echosurf::mesh::Mesh {
+            vertices: vec![
+                glam::DVec3::new(500.0, 0.0, 0.0),
+                glam::DVec3::new(501.0, 0.0, 0.0),
+                glam::DVec3::new(500.0, 1.0, 0.0),
+            ],
+            normals: vec![],
+            triangles: vec![[0, 1, 2]],
+        },
+    )
+    .unwrap();
+    let out = echosurf(&[
+        "compare",
+        far.to_str().unwrap(),
+        truth.to_str().unwrap(),
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    let patches = either["truth_patches"].as_u64().unwrap();
+    assert!(
+        text.contains(&format!("0 whole, 0 split, {patches} missed")),
+        "{text}"
+    );
+    assert_eq!(text.matches("missed: ").count() as u64, patches, "{text}");
+    assert!(text.contains("patch 0 missed: ") && text.contains("no piece within 1 mm"));
 
     // The saved model surfaces again at two levels without refitting: one manifold mesh per level, the
     // higher level enclosing less (fewer triangles around the brighter core of the echo).

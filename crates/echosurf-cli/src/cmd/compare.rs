@@ -188,6 +188,38 @@ fn table(args: &Args, c: &Comparison, swept: Option<&SweptFacingScore>) -> Strin
             p.split,
             p.missed
         ));
+        // Where a patch is not whole, which pieces lie over it (pieces numbered by first triangle).
+        let mut listed = false;
+        for (k, d) in s.patches.iter().enumerate() {
+            let verdict = match d.counted_pieces {
+                0 => "missed",
+                1 => continue,
+                _ => "split",
+            };
+            let [x, y, z] = d.centroid_mm;
+            let pieces: Vec<String> = d
+                .pieces
+                .iter()
+                .map(|(piece, area)| format!("piece {piece} ({area:.1} mm^2)"))
+                .collect();
+            let cover = if pieces.is_empty() {
+                "no piece within 1 mm".to_string()
+            } else {
+                format!(
+                    "covered by {}; {:.1} mm^2 farther than 1 mm",
+                    pieces.join(", "),
+                    d.missed_mm2
+                )
+            };
+            out.push_str(&format!(
+                "  patch {k} {verdict}: {:.1} mm^2 at ({x:.1}, {y:.1}, {z:.1}); {cover}\n",
+                d.area_mm2
+            ));
+            listed = true;
+        }
+        if listed {
+            out.push('\n');
+        }
     }
     out.push_str(&format!(
         "{:<22} {:>12} {:>12}\n",

@@ -353,9 +353,43 @@ pub struct PatchCoverage {
 /// [`PatchCoverage`] of `mesh` over `patches` (from [`patches_of`] with the same `min_area_mm2`). Each
 /// truth triangle's area goes to the piece holding the mesh triangle nearest its centroid (within 1 mm).
 pub fn patch_coverage(mesh: &Mesh, patches: &Mesh, min_area_mm2: f64) -> PatchCoverage {
+    patch_details(mesh, patches, min_area_mm2).0
+}
+
+/// One truth patch and the mesh's pieces over it (see [`PatchCoverage`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PatchDetail {
+    pub area_mm2: f64,
+    /// Area-weighted centroid of the patch (mm, the truth's frame).
+    pub centroid_mm: [f64; 3],
+    /// Area of the patch farther than 1 mm from every piece.
+    pub missed_mm2: f64,
+    /// The pieces within 1 mm of it, largest share first: (piece, area of the patch it covers). A piece
+    /// is numbered by its first triangle in the mesh, from 0.
+    pub pieces: Vec<(usize, f64)>,
+    /// Pieces covering at least the smallest patch area: 0 missed, 1 whole, more split.
+    pub counted_pieces: usize,
+}
+
+/// [`patch_coverage`] with the detail of every patch, in the order of the patches' first triangles.
+pub fn patch_details(
+    mesh: &Mesh,
+    patches: &Mesh,
+    min_area_mm2: f64,
+) -> (PatchCoverage, Vec<PatchDetail>) {
     use rayon::prelude::*;
-    let patch_of = patches.triangle_components();
-    let piece_of = mesh.triangle_components();
+    let dense = |components: Vec<usize>| -> Vec<usize> {
+        let mut number = std::collections::BTreeMap::new();
+        components
+            .iter()
+            .map(|&c| {
+                let next = number.len();
+                *number.entry(c).or_insert(next)
+            })
+            .collect()
+    };
+    let patch_of = dense(patches.triangle_components());
+    let piece_of = dense(mesh.triangle_components());
     let bvh = crate::metrics::TriangleBvh::new(mesh);
     let nearest_piece: Vec<Option<usize>> = patches
         .triangles
@@ -367,30 +401,56 @@ pub fn patch_coverage(mesh: &Mesh, patches: &Mesh, min_area_mm2: f64) -> PatchCo
                 .map(|n| piece_of[n.triangle as usize])
         })
         .collect();
+    let count = patch_of.iter().max().map_or(0, |&m| m + 1);
+    let mut details = vec![
+        PatchDetail {
+            area_mm2: 0.0,
+            centroid_mm: [0.0; 3],
+            missed_mm2: 0.0,
+            pieces: Vec::new(),
+            counted_pieces: 0,
+        };
+        count
+    ];
+    let mut weighted_centre = vec![DVec3::ZERO; count];
     // Covered area per (patch, piece), in a sorted map so the result does not depend on hashing.
     let mut covered: std::collections::BTreeMap<(usize, usize), f64> = Default::default();
     for (f, piece) in nearest_piece.iter().enumerate() {
-        if let Some(piece) = piece {
-            *covered.entry((patch_of[f], *piece)).or_default() +=
-                patches.triangle_area_mm2(patches.triangles[f]);
+        let t = patches.triangles[f];
+        let area = patches.triangle_area_mm2(t);
+        let patch = patch_of[f];
+        details[patch].area_mm2 += area;
+        weighted_centre[patch] += area
+            * t.map(|i| patches.vertices[i as usize])
+                .iter()
+                .sum::<DVec3>()
+            / 3.0;
+        match piece {
+            Some(piece) => *covered.entry((patch, *piece)).or_default() += area,
+            None => details[patch].missed_mm2 += area,
         }
     }
-    let mut pieces_over: std::collections::BTreeMap<usize, usize> =
-        patch_of.iter().map(|&p| (p, 0)).collect();
-    for (&(patch, _), &area) in &covered {
+    for (&(patch, piece), &area) in &covered {
+        details[patch].pieces.push((piece, area));
         if area >= min_area_mm2 {
-            *pieces_over.entry(patch).or_default() += 1;
+            details[patch].counted_pieces += 1;
         }
     }
     let mut coverage = PatchCoverage::default();
-    for &n in pieces_over.values() {
-        match n {
+    for (detail, centre) in details.iter_mut().zip(weighted_centre) {
+        detail
+            .pieces
+            .sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        if detail.area_mm2 > 0.0 {
+            detail.centroid_mm = (centre / detail.area_mm2).to_array();
+        }
+        match detail.counted_pieces {
             0 => coverage.missed += 1,
             1 => coverage.whole += 1,
             _ => coverage.split += 1,
         }
     }
-    coverage
+    (coverage, details)
 }
 
 /// The swept truth that faces the beam within an angle, and how a mesh covers it: completeness within
@@ -408,6 +468,8 @@ pub struct SweptFacingScore {
     /// Connected patches (at least [`MIN_PATCH_AREA_MM2`]) of that truth.
     pub truth_patches: usize,
     pub patch_coverage: PatchCoverage,
+    /// Each patch and the pieces over it.
+    pub patches: Vec<PatchDetail>,
 }
 
 /// The part of a truth that the frames sweep and whose chosen side faces their beam within an angle,
@@ -480,6 +542,7 @@ impl SweptFacingTruth {
                 ..compare.clone()
             },
         )?;
+        let (patch_coverage, patches) = patch_details(mesh, &self.patches, MIN_PATCH_AREA_MM2);
         Ok(SweptFacingScore {
             max_angle_deg: self.max_angle_deg,
             side: self.side,
@@ -487,7 +550,8 @@ impl SweptFacingTruth {
             truth_area_mm2: comparison.truth_compared_area_mm2,
             completeness_1mm: comparison.completeness_1mm,
             truth_patches: patch_count(&self.patches),
-            patch_coverage: patch_coverage(mesh, &self.patches, MIN_PATCH_AREA_MM2),
+            patch_coverage,
+            patches,
         })
     }
 }
@@ -796,7 +860,7 @@ mod tests {
             &squares(12.0, 0.5, 2, 4),
             &squares(20.0, 2.0, 4, 4),
         ]);
-        let coverage = patch_coverage(&mesh, &patches_of(&truth, &all, 2.0), 2.0);
+        let (coverage, details) = patch_details(&mesh, &patches_of(&truth, &all, 2.0), 2.0);
         assert_eq!(
             coverage,
             PatchCoverage {
@@ -804,6 +868,32 @@ mod tests {
                 split: 1,
                 missed: 1
             }
+        );
+        assert_eq!(
+            coverage,
+            patch_coverage(&mesh, &patches_of(&truth, &all, 2.0), 2.0)
+        );
+        // Per patch: area, centre, the pieces over it (largest share first; pieces numbered by their
+        // first triangle: 0 the big one, 1 the crumb, 2 and 3 the halves, 4 the one too high).
+        let summary: Vec<(f64, [f64; 3], f64, Vec<(usize, f64)>, usize)> = details
+            .iter()
+            .map(|d| {
+                (
+                    d.area_mm2,
+                    d.centroid_mm,
+                    d.missed_mm2,
+                    d.pieces.clone(),
+                    d.counted_pieces,
+                )
+            })
+            .collect();
+        assert_eq!(
+            summary,
+            vec![
+                (16.0, [2.0, 2.0, 0.0], 0.0, vec![(0, 15.0), (1, 1.0)], 1),
+                (16.0, [12.0, 2.0, 0.0], 0.0, vec![(2, 8.0), (3, 8.0)], 2),
+                (16.0, [22.0, 2.0, 0.0], 16.0, vec![], 0),
+            ]
         );
         // Patches below the smallest area are not counted at all; a mask removes the others.
         assert_eq!(
