@@ -875,24 +875,21 @@ mod tests {
         );
         // Per patch: area, centre, the pieces over it (largest share first; pieces numbered by their
         // first triangle: 0 the big one, 1 the crumb, 2 and 3 the halves, 4 the one too high).
-        let summary: Vec<(f64, [f64; 3], f64, Vec<(usize, f64)>, usize)> = details
-            .iter()
-            .map(|d| {
-                (
-                    d.area_mm2,
-                    d.centroid_mm,
-                    d.missed_mm2,
-                    d.pieces.clone(),
-                    d.counted_pieces,
-                )
-            })
-            .collect();
+        let patch = |x: f64, missed_mm2: f64, pieces: Vec<(usize, f64)>, counted_pieces: usize| {
+            PatchDetail {
+                area_mm2: 16.0,
+                centroid_mm: [x, 2.0, 0.0],
+                missed_mm2,
+                pieces,
+                counted_pieces,
+            }
+        };
         assert_eq!(
-            summary,
+            details,
             vec![
-                (16.0, [2.0, 2.0, 0.0], 0.0, vec![(0, 15.0), (1, 1.0)], 1),
-                (16.0, [12.0, 2.0, 0.0], 0.0, vec![(2, 8.0), (3, 8.0)], 2),
-                (16.0, [22.0, 2.0, 0.0], 16.0, vec![], 0),
+                patch(2.0, 0.0, vec![(0, 15.0), (1, 1.0)], 1),
+                patch(12.0, 0.0, vec![(2, 8.0), (3, 8.0)], 2),
+                patch(22.0, 16.0, vec![], 0),
             ]
         );
         // Patches below the smallest area are not counted at all; a mask removes the others.
