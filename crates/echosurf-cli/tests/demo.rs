@@ -85,6 +85,7 @@ fn demo_writes_everything_and_its_ridge_sheet_is_accurate() {
             .unwrap()
             >= 1
     );
+    assert_eq!(report["sheets"][0]["bridge_gap_mm"], 2.0);
     assert!(report["sheets"][0]["bridged_pieces"].as_u64().unwrap() >= 1);
     assert!(
         stdout.contains("echoed by fewer than 3 frames removed"),

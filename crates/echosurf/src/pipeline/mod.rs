@@ -246,8 +246,9 @@ pub struct SheetUsed {
     /// pieces removed for it.
     pub min_echo_frames: usize,
     pub pieces_without_echoes: usize,
-    /// Seams made between kept pieces across gaps of up to [`ExtractOptions::bridge_gap_mm`]
-    /// ([`Mesh::bridge_near_pieces`]); each joins two pieces into one.
+    /// Widest gap bridged between kept pieces (mm; 0: not bridged), and the seams made across such
+    /// gaps ([`Mesh::bridge_near_pieces`]); each joins two pieces into one.
+    pub bridge_gap_mm: f64,
     pub bridged_pieces: usize,
 }
 
@@ -262,6 +263,7 @@ impl SheetUsed {
             min_component_area_mm2: 0.0,
             min_echo_frames: 0,
             pieces_without_echoes: 0,
+            bridge_gap_mm: 0.0,
             bridged_pieces: 0,
         }
     }
@@ -837,6 +839,7 @@ pub fn extract(
             }
             // Only pieces that passed both checks are bridged: a crumb next to a wall stays a crumb.
             if options.bridge_gap_mm.is_finite() && options.bridge_gap_mm > 0.0 {
+                used.bridge_gap_mm = options.bridge_gap_mm;
                 used.bridged_pieces = mesh.bridge_near_pieces(options.bridge_gap_mm);
             }
         }
