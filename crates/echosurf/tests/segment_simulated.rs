@@ -93,6 +93,10 @@ struct Coverage {
     /// (max angle in degrees, kept share within 1 mm of the surface facing the beam within it).
     near_kept: Vec<(f64, f64)>,
     kept_all: f64,
+    /// Kept share of every pixel within 1 mm of the phantom's surface, at any angle and in shadow or
+    /// not: the issue's words taken literally. Reported, not asserted: about half of it returns no echo
+    /// (see `assert_coverage`).
+    whole_surface_kept: f64,
 }
 
 impl Coverage {
@@ -117,6 +121,7 @@ fn coverage(
     let mut near = [0usize; 3];
     let mut near_kept = [0usize; 3];
     let mut kept = 0usize;
+    let (mut whole, mut whole_kept) = (0usize, 0usize);
     for pose in &poses.poses {
         let f = pose.frame_index;
         let m = &sim.true_image_to_world[f];
@@ -125,6 +130,12 @@ fn coverage(
         let beam = m.y_axis.truncate().normalize();
         for u in 0..w {
             let world = |v: usize| m.transform_point3(DVec3::new(u as f64, v as f64, 0.0));
+            for v in 0..h {
+                if phantom.distance_and_gradient(world(v)).0.abs() <= 1.0 {
+                    whole += 1;
+                    whole_kept += (mask[v * w + u] != 0) as usize;
+                }
+            }
             let Some(first_inside) =
                 (0..h).find(|&v| phantom.distance_and_gradient(world(v)).0 < 0.0)
             else {
@@ -144,7 +155,8 @@ fn coverage(
     }
     let all = w * h * poses.poses.len();
     eprintln!(
-        "{} frames; visible-surface pixels kept {near_kept:?} of {near:?} (30, 45, 60 deg), kept {kept}/{all}",
+        "{} frames; visible-surface pixels kept {near_kept:?} of {near:?} (30, 45, 60 deg), kept {kept}/{all}; \
+         whole surface kept {whole_kept} of {whole}",
         poses.poses.len()
     );
     assert!(
@@ -159,6 +171,7 @@ fn coverage(
             .map(|(k, &a)| (a, near_kept[k] as f64 / near[k] as f64))
             .collect(),
         kept_all: kept as f64 / all as f64,
+        whole_surface_kept: whole_kept as f64 / whole.max(1) as f64,
     }
 }
 
@@ -330,12 +343,18 @@ fn simulated_duck_polygon_init() {
 /// both inits. Measured: sphere 100 % within 30 and 45 degrees, 18.2 % / 18.1 % of all pixels (auto /
 /// polygon); duck 100 % within 30 degrees, 99.1 % / 98.6 % within 45, 22.4 % / 22.1 % of all pixels. The
 /// paper's edgels on the same pass: sphere 100 % within 45 degrees in 46.3 % of the pixels, duck 99.3 %
-/// in 28.0 %.
+/// in 28.0 %. Of every pixel within 1 mm of the surface (any angle, shadowed or not) the bands keep 40.1 %
+/// / 40.1 % of the sphere's and 47.8 % / 47.1 % of the duck's (the paper's edgels, auto: 55.1 % and
+/// 54.8 %): walls parallel to the beam or in the object's shadow return no echo for an edgel to find.
 #[test]
 fn default_pass_strong_echo_kept_in_a_narrow_band() {
     for kind in [PhantomKind::Sphere, PhantomKind::Duck] {
         for polygon in [false, true] {
             let c = chained_coverage_on(kind.clone(), DEFAULT_PASS, polygon, false);
+            eprintln!(
+                "{kind:?}, polygon {polygon}: whole surface within 1 mm kept {:.3}",
+                c.whole_surface_kept
+            );
             assert_coverage(&c, &[(30.0, 0.99)]);
         }
     }
