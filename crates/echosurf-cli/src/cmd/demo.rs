@@ -82,6 +82,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         sim.sequence.height,
         sim.calibration_true.clip,
         1.5,
+        echosurf::bench::FacingSide::Either,
         30.0,
     );
     let facing = compare_meshes(

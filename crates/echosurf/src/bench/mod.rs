@@ -170,7 +170,9 @@ pub fn user_case(
     })
 }
 
-/// Swept, beam-facing truth triangles (see the module docs). The beam runs along the image's +v axis.
+/// Swept, beam-facing truth triangles (see the module docs), `side` facing the beam within
+/// `max_angle_deg`. The beam runs along the image's +v axis.
+#[allow(clippy::too_many_arguments)]
 pub fn swept_beam_facing_mask(
     truth: &Mesh,
     image_to_world: &[DMat4],
@@ -178,6 +180,7 @@ pub fn swept_beam_facing_mask(
     height: usize,
     clip: Option<ClipRect>,
     max_plane_distance_mm: f64,
+    side: FacingSide,
     max_angle_deg: f64,
 ) -> Vec<bool> {
     let cosines = swept_beam_cosines(
@@ -187,7 +190,7 @@ pub fn swept_beam_facing_mask(
         height,
         clip,
         max_plane_distance_mm,
-        FacingSide::Either,
+        side,
     );
     facing_within(&cosines, max_angle_deg)
 }
@@ -501,7 +504,7 @@ impl SweptFacingTruth {
             )));
         }
         let plane_distance_mm = median_spacing(image_to_world).unwrap_or(1.5).max(1.5);
-        let cosines = swept_beam_cosines(
+        let mask = swept_beam_facing_mask(
             truth,
             image_to_world,
             width,
@@ -509,8 +512,8 @@ impl SweptFacingTruth {
             clip,
             plane_distance_mm,
             side,
+            max_angle_deg,
         );
-        let mask = facing_within(&cosines, max_angle_deg);
         if !mask.iter().any(|&m| m) {
             return Err(Error::InvalidInput(format!(
                 "no truth triangle is swept by a frame and faces its beam within {max_angle_deg} \
@@ -935,7 +938,16 @@ mod tests {
     #[test]
     fn mask_keeps_the_swept_caps_facing_the_beam() {
         let (sphere, frame) = sphere_and_frame();
-        let mask = swept_beam_facing_mask(&sphere, &[frame], 81, 81, None, 1.5, 60.0);
+        let mask = swept_beam_facing_mask(
+            &sphere,
+            &[frame],
+            81,
+            81,
+            None,
+            1.5,
+            FacingSide::Either,
+            60.0,
+        );
         let kept: Vec<usize> = (0..mask.len()).filter(|&i| mask[i]).collect();
         assert!(!kept.is_empty());
         for &i in &kept {
