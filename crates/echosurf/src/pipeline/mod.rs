@@ -151,7 +151,10 @@ impl Default for WeakEchoes {
     /// Drawing the sheet through the union of the strong and the weak ridge points instead raised p95 to
     /// 0.60-0.63 mm on duck seeds 1-2; seeding from every strong ridge point rather than from the
     /// sheet's surviving pieces grew sub-2 mm^2 speckle crumbs into kept pieces (fraction 0.35, reach
-    /// 1 mm, `echosurf bench routes`: sphere 2 -> 10 pieces, p95 0.44 -> 0.60 mm).
+    /// 1 mm, `echosurf bench routes`: sphere 2 -> 10 pieces, p95 0.44 -> 0.60 mm). Re-measured with the
+    /// echo-frame check and gap joins in place (docs/pipeline.md, "Where the defaults sit"): 0.4-0.6 with
+    /// reach 2-2.5 mm takes hand seed 2's probe side past 0.98 but hand seed 3's p95 past 0.6 mm and
+    /// costs a duck seed a patch or its p95.
     fn default() -> Self {
         WeakEchoes {
             level_fraction: 0.3,
@@ -327,7 +330,10 @@ pub const ECHO_SUPPORT_RADIUS_MM: f64 = 1.0;
 /// seeds 1-3): duck pieces 10 / 9 / 8 / 12 / 10 / 10 / 11 / 13 -> 6 / 6 / 6 / 8 / 8 / 9 / 10 / 8,
 /// hand 1 / 3 / 4 -> 1 / 2 / 4; completeness within 20 degrees of the beam the same (duck seed 8's
 /// inner wall 0.987 -> 0.988); mean to the truth within 0.001 mm, p95 the same or lower (by up to
-/// 0.004 mm). With 1 mm: duck 9 / 7 / 8 / 9 / 9 / 9 / 11 / 11, hand 1 / 3 / 4.
+/// 0.004 mm). With 1 mm: duck 9 / 7 / 8 / 9 / 9 / 9 / 11 / 11, hand 1 / 3 / 4. Wider bounds join more
+/// (3 mm: duck 6 / 6 / 6 / 6 / 6 / 6 / 7 / 6, hand 1 / 1 / 3), but of the seams whose wider end is 2-3 mm,
+/// 4 of 15 join the duck's outer wall to its inner or cut across its neck up to 2 mm off the truth
+/// (docs/pipeline.md, "Where the defaults sit").
 pub const DEFAULT_BRIDGE_GAP_MM: f64 = 2.0;
 
 /// Echo-priority margin `extract` uses unless told otherwise (see [`ExtractOptions::echo_margin_mm`]).
