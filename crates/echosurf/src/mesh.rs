@@ -22,6 +22,18 @@ fn distance_to_segment(p: DVec3, a: DVec3, b: DVec3) -> f64 {
     p.distance(a + t * ab)
 }
 
+/// A mesh's boundary edges as their triangles run them ([`Mesh::bridge_near_pieces`]).
+struct DirectedBoundary {
+    /// (from, to, triangle), pinched vertices' edges left out.
+    edges: Vec<(u32, u32, usize)>,
+    /// A boundary vertex's edge out: (to, triangle).
+    from: std::collections::HashMap<u32, (u32, usize)>,
+    /// A boundary vertex's edge in: (from, triangle).
+    to: std::collections::HashMap<u32, (u32, usize)>,
+    /// Per vertex: starts or ends more than one boundary edge.
+    ambiguous: Vec<bool>,
+}
+
 /// Root of `i` in a union-find forest, halving the path on the way.
 fn find_root(parent: &mut [usize], mut i: usize) -> usize {
     while parent[i] != i {
@@ -617,97 +629,20 @@ impl Mesh {
     /// one; no vertex is added or moved. A gap bound that is not a positive finite distance bridges
     /// nothing. Returns the bridges made.
     pub fn bridge_near_pieces(&mut self, max_gap_mm: f64) -> usize {
-        let n = self.vertices.len();
         // Written so that a NaN bound bridges nothing.
         if !(max_gap_mm > 0.0 && max_gap_mm.is_finite()) || self.triangles.is_empty() {
             return 0;
         }
-        let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
-        let mut undirected: std::collections::HashMap<(u32, u32), usize> =
-            std::collections::HashMap::with_capacity(self.triangles.len() * 3);
-        for t in self.triangles.iter().filter(|t| valid(t)) {
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                *undirected.entry((a.min(b), a.max(b))).or_default() += 1;
-            }
-        }
-        // Boundary edges as their triangle runs them, in triangle order (not the map's). A vertex
-        // starting or ending two of them (a pinch) is left alone.
-        let mut boundary: Vec<(u32, u32, usize)> = Vec::new();
-        let mut from: std::collections::HashMap<u32, (u32, usize)> = Default::default();
-        let mut to: std::collections::HashMap<u32, (u32, usize)> = Default::default();
-        let mut ambiguous = vec![false; n];
-        for (f, t) in self.triangles.iter().enumerate().filter(|(_, t)| valid(t)) {
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                if a != b && undirected[&(a.min(b), a.max(b))] == 1 {
-                    boundary.push((a, b, f));
-                    ambiguous[a as usize] |= from.insert(a, (b, f)).is_some();
-                    ambiguous[b as usize] |= to.insert(b, (a, f)).is_some();
-                }
-            }
-        }
-        boundary.retain(|&(a, b, _)| !ambiguous[a as usize] && !ambiguous[b as usize]);
-        let p = |i: u32| self.vertices[i as usize];
-        let unit_normal = |t: [u32; 3]| {
-            let [a, b, c] = t.map(p);
-            (b - a).cross(c - a).normalize_or_zero()
-        };
-        let midpoints: Vec<DVec3> = boundary
-            .iter()
-            .map(|&(a, b, _)| 0.5 * (p(a) + p(b)))
-            .collect();
-        let Some(buckets) = crate::spatial::PointBuckets::new(&midpoints, max_gap_mm) else {
-            return 0;
-        };
+        let boundary = self.directed_boundary();
         let component = self.triangle_components();
-        // (summed gap, edge i, edge j, the quad's two triangles)
-        let mut candidates: Vec<(f64, usize, usize, [[u32; 3]; 2])> = Vec::new();
-        for (i, &(a0, a1, fa)) in boundary.iter().enumerate() {
-            let na = unit_normal(self.triangles[fa]);
-            buckets.visit_within(midpoints[i], max_gap_mm, &mut |j, _| {
-                let (b0, b1, fb) = boundary[j];
-                // Each pair once; the condition below is symmetric in the two edges.
-                if j <= i || component[fa] == component[fb] {
-                    return true;
-                }
-                let (gap_a0, gap_a1) = (p(a0).distance(p(b1)), p(a1).distance(p(b0)));
-                if !(gap_a0 <= max_gap_mm && gap_a1 <= max_gap_mm) {
-                    return true;
-                }
-                let nb = unit_normal(self.triangles[fb]);
-                if na.dot(nb) < 0.5 {
-                    return true;
-                }
-                // The quad a1 -> a0 -> b1 -> b0, cut along its shorter diagonal if that faces right.
-                let along_a1_b1 = [[a1, a0, b1], [a1, b1, b0]];
-                let along_a0_b0 = [[a0, b1, b0], [a0, b0, a1]];
-                let mut cuts = [
-                    (p(a1).distance(p(b1)), along_a1_b1),
-                    (p(a0).distance(p(b0)), along_a0_b0),
-                ];
-                cuts.sort_by(|x, y| x.0.total_cmp(&y.0));
-                let faces_alike = |t: [u32; 3]| {
-                    let nt = unit_normal(t);
-                    nt.dot(na) >= 0.5 && nt.dot(nb) >= 0.5
-                };
-                if let Some((_, quad)) = cuts
-                    .into_iter()
-                    .find(|(_, quad)| quad.iter().all(|&t| faces_alike(t)))
-                {
-                    candidates.push((gap_a0 + gap_a1, i, j, quad));
-                }
-                true
-            });
-        }
-        candidates.sort_by(|x, y| x.0.total_cmp(&y.0).then((x.1, x.2).cmp(&(y.1, y.2))));
+        let candidates = self.bridge_quads(&boundary, &component, max_gap_mm);
         let mut group: Vec<usize> = (0..self.triangles.len()).collect();
-        let mut used = ambiguous;
+        let mut used = boundary.ambiguous.clone();
         let mut added: Vec<[u32; 3]> = Vec::new();
         let mut bridges = 0;
         for (_, i, j, quad) in candidates {
-            let (a0, a1, fa) = boundary[i];
-            let (b0, b1, fb) = boundary[j];
+            let (a0, a1, fa) = boundary.edges[i];
+            let (b0, b1, fb) = boundary.edges[j];
             let (ga, gb) = (
                 find_root(&mut group, component[fa]),
                 find_root(&mut group, component[fb]),
@@ -725,56 +660,169 @@ impl Mesh {
             // next triangle runs a1 -> b0 and closes either the first piece's boundary edge out of
             // a1 or the second's into b0. Towards a0: the front a0 -> b1, the next triangle runs
             // b1 -> a0 and closes the first piece's edge into a0 or the second's out of b1.
-            for towards_a1 in [true, false] {
-                // x advances along its piece's boundary edges (out of x), y against them (into y),
-                // and every new triangle runs x -> y.
-                let (mut x, mut y) = if towards_a1 { (a1, b0) } else { (b1, a0) };
-                let mut previous = unit_normal(if towards_a1 { quad[1] } else { quad[0] });
-                for _ in 0..boundary.len() {
-                    let next_x = from.get(&x).copied();
-                    let next_y = to.get(&y).copied();
-                    // Distance from a vertex to the other side's front: its edge on from the front
-                    // vertex (or the vertex alone at the end of a boundary).
-                    let to_front = |v: u32, front: u32, on: Option<(u32, usize)>| match on {
-                        Some((w, _)) => distance_to_segment(p(v), p(front), p(w)),
-                        None => p(v).distance(p(front)),
-                    };
-                    // (new triangle, new edge's length, the vertex it takes, the triangle whose
-                    // boundary edge it closes, whether x advances)
-                    let mut options: Vec<([u32; 3], f64, u32, usize, bool)> = Vec::new();
-                    if let Some((v, f)) = next_x
-                        && to_front(v, y, next_y) <= max_gap_mm
-                    {
-                        options.push(([x, y, v], p(v).distance(p(y)), v, f, true));
-                    }
-                    if let Some((v, f)) = next_y
-                        && to_front(v, x, next_x) <= max_gap_mm
-                    {
-                        options.push(([x, y, v], p(v).distance(p(x)), v, f, false));
-                    }
-                    options.retain(|&(t, _, v, f, _)| {
-                        let nt = unit_normal(t);
-                        !used[v as usize]
-                            && nt.dot(previous) >= 0.5
-                            && nt.dot(unit_normal(self.triangles[f])) >= 0.5
-                    });
-                    options.sort_by(|u, w| u.1.total_cmp(&w.1));
-                    let Some(&(t, _, v, _, advances_x)) = options.first() else {
-                        break;
-                    };
-                    added.push(t);
-                    used[v as usize] = true;
-                    previous = unit_normal(t);
-                    if advances_x {
-                        x = v;
-                    } else {
-                        y = v;
-                    }
-                }
+            for (front, last) in [((a1, b0), quad[1]), ((b1, a0), quad[0])] {
+                self.zip_seam(&boundary, front, last, max_gap_mm, &mut used, &mut added);
             }
         }
         self.triangles.extend(added);
         bridges
+    }
+
+    /// The boundary edges (used by one triangle) as their triangle runs them, in triangle order, with
+    /// each boundary vertex's edge out and edge in. A vertex starting or ending two of them (a pinch)
+    /// is marked ambiguous and its edges are left out.
+    fn directed_boundary(&self) -> DirectedBoundary {
+        let n = self.vertices.len();
+        let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
+        let mut undirected: std::collections::HashMap<(u32, u32), usize> =
+            std::collections::HashMap::with_capacity(self.triangles.len() * 3);
+        for t in self.triangles.iter().filter(|t| valid(t)) {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                *undirected.entry((a.min(b), a.max(b))).or_default() += 1;
+            }
+        }
+        let mut boundary = DirectedBoundary {
+            edges: Vec::new(),
+            from: Default::default(),
+            to: Default::default(),
+            ambiguous: vec![false; n],
+        };
+        for (f, t) in self.triangles.iter().enumerate().filter(|(_, t)| valid(t)) {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                if a != b && undirected[&(a.min(b), a.max(b))] == 1 {
+                    boundary.edges.push((a, b, f));
+                    boundary.ambiguous[a as usize] |= boundary.from.insert(a, (b, f)).is_some();
+                    boundary.ambiguous[b as usize] |= boundary.to.insert(b, (a, f)).is_some();
+                }
+            }
+        }
+        let ambiguous = &boundary.ambiguous;
+        boundary
+            .edges
+            .retain(|&(a, b, _)| !ambiguous[a as usize] && !ambiguous[b as usize]);
+        boundary
+    }
+
+    fn unit_normal(&self, t: [u32; 3]) -> DVec3 {
+        let [a, b, c] = t.map(|i| self.vertices[i as usize]);
+        (b - a).cross(c - a).normalize_or_zero()
+    }
+
+    /// Every quad that could start a bridge, narrowest first: (summed gap, edge i, edge j, the quad's
+    /// two triangles) for each pair of boundary edges i -> j of different pieces that face each other
+    /// within `max_gap_mm` at both ends, with pieces and quad all facing alike.
+    fn bridge_quads(
+        &self,
+        boundary: &DirectedBoundary,
+        component: &[usize],
+        max_gap_mm: f64,
+    ) -> Vec<(f64, usize, usize, [[u32; 3]; 2])> {
+        let p = |i: u32| self.vertices[i as usize];
+        let edges = &boundary.edges;
+        let midpoints: Vec<DVec3> = edges.iter().map(|&(a, b, _)| 0.5 * (p(a) + p(b))).collect();
+        let Some(buckets) = crate::spatial::PointBuckets::new(&midpoints, max_gap_mm) else {
+            return Vec::new();
+        };
+        let mut candidates = Vec::new();
+        for (i, &(a0, a1, fa)) in edges.iter().enumerate() {
+            let na = self.unit_normal(self.triangles[fa]);
+            buckets.visit_within(midpoints[i], max_gap_mm, &mut |j, _| {
+                let (b0, b1, fb) = edges[j];
+                // Each pair once; the condition below is symmetric in the two edges.
+                if j <= i || component[fa] == component[fb] {
+                    return true;
+                }
+                let (gap_a0, gap_a1) = (p(a0).distance(p(b1)), p(a1).distance(p(b0)));
+                if !(gap_a0 <= max_gap_mm && gap_a1 <= max_gap_mm) {
+                    return true;
+                }
+                let nb = self.unit_normal(self.triangles[fb]);
+                if na.dot(nb) < 0.5 {
+                    return true;
+                }
+                // The quad a1 -> a0 -> b1 -> b0, cut along its shorter diagonal if that faces right.
+                let along_a1_b1 = [[a1, a0, b1], [a1, b1, b0]];
+                let along_a0_b0 = [[a0, b1, b0], [a0, b0, a1]];
+                let mut cuts = [
+                    (p(a1).distance(p(b1)), along_a1_b1),
+                    (p(a0).distance(p(b0)), along_a0_b0),
+                ];
+                cuts.sort_by(|x, y| x.0.total_cmp(&y.0));
+                let faces_alike = |t: [u32; 3]| {
+                    let nt = self.unit_normal(t);
+                    nt.dot(na) >= 0.5 && nt.dot(nb) >= 0.5
+                };
+                if let Some((_, quad)) = cuts
+                    .into_iter()
+                    .find(|(_, quad)| quad.iter().all(|&t| faces_alike(t)))
+                {
+                    candidates.push((gap_a0 + gap_a1, i, j, quad));
+                }
+                true
+            });
+        }
+        candidates.sort_by(|x, y| x.0.total_cmp(&y.0).then((x.1, x.2).cmp(&(y.1, y.2))));
+        candidates
+    }
+
+    /// Zips a seam on from its front edge `y -> x` (the edge of the last triangle laid, `last`): `x`
+    /// advances along its piece's boundary edges (out of x), `y` against them (into y), every new
+    /// triangle runs x -> y -> (the vertex taken), and the zip stops where neither next vertex lies
+    /// within `max_gap_mm` of the other side's front or the triangle would not face alike.
+    fn zip_seam(
+        &self,
+        boundary: &DirectedBoundary,
+        (mut x, mut y): (u32, u32),
+        last: [u32; 3],
+        max_gap_mm: f64,
+        used: &mut [bool],
+        added: &mut Vec<[u32; 3]>,
+    ) {
+        let p = |i: u32| self.vertices[i as usize];
+        let mut previous = self.unit_normal(last);
+        for _ in 0..boundary.edges.len() {
+            let next_x = boundary.from.get(&x).copied();
+            let next_y = boundary.to.get(&y).copied();
+            // Distance from a vertex to the other side's front: its edge on from the front vertex
+            // (or the vertex alone at the end of a boundary).
+            let to_front = |v: u32, front: u32, on: Option<(u32, usize)>| match on {
+                Some((w, _)) => distance_to_segment(p(v), p(front), p(w)),
+                None => p(v).distance(p(front)),
+            };
+            // (new triangle, new edge's length, the vertex it takes, the triangle whose boundary edge
+            // it closes, whether x advances)
+            let mut options: Vec<([u32; 3], f64, u32, usize, bool)> = Vec::new();
+            if let Some((v, f)) = next_x
+                && to_front(v, y, next_y) <= max_gap_mm
+            {
+                options.push(([x, y, v], p(v).distance(p(y)), v, f, true));
+            }
+            if let Some((v, f)) = next_y
+                && to_front(v, x, next_x) <= max_gap_mm
+            {
+                options.push(([x, y, v], p(v).distance(p(x)), v, f, false));
+            }
+            options.retain(|&(t, _, v, f, _)| {
+                let nt = self.unit_normal(t);
+                !used[v as usize]
+                    && nt.dot(previous) >= 0.5
+                    && nt.dot(self.unit_normal(self.triangles[f])) >= 0.5
+            });
+            options.sort_by(|u, w| u.1.total_cmp(&w.1));
+            let Some(&(t, _, v, _, advances_x)) = options.first() else {
+                break;
+            };
+            added.push(t);
+            used[v as usize] = true;
+            previous = self.unit_normal(t);
+            if advances_x {
+                x = v;
+            } else {
+                y = v;
+            }
+        }
     }
 
     /// Gives every fan of triangles around a pinched vertex its own copy of the vertex, so a mesh whose
