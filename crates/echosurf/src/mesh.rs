@@ -705,7 +705,8 @@ impl Mesh {
         boundary
     }
 
-    fn unit_normal(&self, t: [u32; 3]) -> DVec3 {
+    /// Unit normal of a triangle by the right-hand rule, zero for a degenerate one.
+    pub(crate) fn triangle_unit_normal(&self, t: [u32; 3]) -> DVec3 {
         let [a, b, c] = t.map(|i| self.vertices[i as usize]);
         (b - a).cross(c - a).normalize_or_zero()
     }
@@ -727,7 +728,7 @@ impl Mesh {
         };
         let mut candidates = Vec::new();
         for (i, &(a0, a1, fa)) in edges.iter().enumerate() {
-            let na = self.unit_normal(self.triangles[fa]);
+            let na = self.triangle_unit_normal(self.triangles[fa]);
             buckets.visit_within(midpoints[i], max_gap_mm, &mut |j, _| {
                 let (b0, b1, fb) = edges[j];
                 // Each pair once; the condition below is symmetric in the two edges.
@@ -738,7 +739,7 @@ impl Mesh {
                 if !(gap_a0 <= max_gap_mm && gap_a1 <= max_gap_mm) {
                     return true;
                 }
-                let nb = self.unit_normal(self.triangles[fb]);
+                let nb = self.triangle_unit_normal(self.triangles[fb]);
                 if na.dot(nb) < 0.5 {
                     return true;
                 }
@@ -751,7 +752,7 @@ impl Mesh {
                 ];
                 cuts.sort_by(|x, y| x.0.total_cmp(&y.0));
                 let faces_alike = |t: [u32; 3]| {
-                    let nt = self.unit_normal(t);
+                    let nt = self.triangle_unit_normal(t);
                     nt.dot(na) >= 0.5 && nt.dot(nb) >= 0.5
                 };
                 if let Some((_, quad)) = cuts
@@ -781,7 +782,7 @@ impl Mesh {
         added: &mut Vec<[u32; 3]>,
     ) {
         let p = |i: u32| self.vertices[i as usize];
-        let mut previous = self.unit_normal(last);
+        let mut previous = self.triangle_unit_normal(last);
         for _ in 0..boundary.edges.len() {
             let next_x = boundary.from.get(&x).copied();
             let next_y = boundary.to.get(&y).copied();
@@ -805,10 +806,10 @@ impl Mesh {
                 options.push(([x, y, v], p(v).distance(p(x)), v, f, false));
             }
             options.retain(|&(t, _, v, f, _)| {
-                let nt = self.unit_normal(t);
+                let nt = self.triangle_unit_normal(t);
                 !used[v as usize]
                     && nt.dot(previous) >= 0.5
-                    && nt.dot(self.unit_normal(self.triangles[f])) >= 0.5
+                    && nt.dot(self.triangle_unit_normal(self.triangles[f])) >= 0.5
             });
             options.sort_by(|u, w| u.1.total_cmp(&w.1));
             let Some(&(t, _, v, _, advances_x)) = options.first() else {
@@ -816,7 +817,7 @@ impl Mesh {
             };
             added.push(t);
             used[v as usize] = true;
-            previous = self.unit_normal(t);
+            previous = self.triangle_unit_normal(t);
             if advances_x {
                 x = v;
             } else {

@@ -149,12 +149,6 @@ fn write_f32s(w: &mut impl Write, values: &[f64]) -> std::io::Result<()> {
     Ok(())
 }
 
-/// Unit normal of a triangle by the right-hand rule, zero for a degenerate one.
-fn face_normal(mesh: &Mesh, t: [u32; 3]) -> DVec3 {
-    let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-    (b - a).cross(c - a).normalize_or_zero()
-}
-
 fn write_stl(path: &Path, mesh: &Mesh) -> Result<()> {
     crate::io::atomic::write_atomic(path, |w| {
         // The header must not start with "solid", or readers may take the file for ASCII STL.
@@ -164,7 +158,7 @@ fn write_stl(path: &Path, mesh: &Mesh) -> Result<()> {
         w.write_all(&header)?;
         w.write_all(&(mesh.triangles.len() as u32).to_le_bytes())?;
         for &t in &mesh.triangles {
-            let n = face_normal(mesh, t);
+            let n = mesh.triangle_unit_normal(t);
             write_f32s(w, &[n.x, n.y, n.z])?;
             for i in t {
                 let v = mesh.vertices[i as usize];
