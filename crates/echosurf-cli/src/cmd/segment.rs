@@ -47,6 +47,10 @@ pub struct SegmentArgs {
     /// M as a fraction of the number of columns.
     #[arg(long, default_value_t = 0.75)]
     pub edgel_fraction: f64,
+    /// Drop edgels weaker than this fraction of the frame's strongest (beyond the paper; 0 = the paper's
+    /// plain M largest; default 0.35). With --smoothing-mm 1, 0.4 gives a narrower band (docs/pipeline.md).
+    #[arg(long)]
+    pub edgel_floor: Option<f64>,
     /// Prior inside the carried band (C1).
     #[arg(long, default_value_t = 1.0)]
     pub prior_inside: f64,
@@ -93,6 +97,9 @@ impl SegmentArgs {
             ),
             edgel_fraction: self.edgel_fraction,
             edgel_count: self.edgels,
+            min_edgel_relative_strength: self
+                .edgel_floor
+                .unwrap_or(defaults.min_edgel_relative_strength),
             prior_inside: self.prior_inside,
             prior_outside: self.prior_outside,
             likelihood_sigma: length(self.sigma_px, self.sigma_mm, defaults.likelihood_sigma),
