@@ -596,6 +596,105 @@ pub fn segment_sequence(
     progress: &dyn Progress,
 ) -> Result<BandMasks> {
     options.validate()?;
+    check_segmentable(sequence, poses)?;
+    let (width, height) = (sequence.width, sequence.height);
+    let init_full = initial_band_pixels(init, width, height)?;
+    let pixel_size_mm = poses
+        .poses
+        .first()
+        .map(|p| pixel_size_of(&p.image_to_world));
+    let px_size = pixel_size_for_lengths(options, poses, pixel_size_mm)?;
+    let mut clip = effective_clip(clip, width, height);
+    if options.detect_data_region
+        && let Some(c) = clip
+    {
+        clip = data_region(sequence, poses, c);
+    }
+    let orientation = {
+        let third = sequence.orientation.chars().nth(2);
+        let mut o = String::from("MF");
+        if let Some(c) = third {
+            o.push(c);
+        }
+        o
+    };
+    let parameters = resolve_parameters(
+        options,
+        pixel_size_mm,
+        px_size,
+        clip.map_or(0, |c| c.size_px[0]),
+    );
+    let masks = vec![vec![0u8; width * height]; sequence.frames.len()];
+    let Some(clip) = clip else {
+        return Ok(BandMasks {
+            width,
+            height,
+            masks,
+            warnings: vec!["the clip rectangle lies outside the frame: every mask is empty".into()],
+            initialised_frames: Vec::new(),
+            frames: sequence.frames.clone(),
+            orientation,
+            parameters,
+        });
+    };
+    let init_crop: Option<Vec<bool>> = init_full.map(|full| crop_bool(&full, width, clip));
+    if let Some(b) = &init_crop
+        && !b.iter().any(|&x| x)
+    {
+        return Err(Error::InvalidInput(
+            "the initial band covers no pixel inside the clip rectangle".into(),
+        ));
+    }
+
+    let mut run = BandPropagation {
+        sequence,
+        clip,
+        propagator: Propagator::new(options, &parameters, px_size, clip),
+        ws: Workspace::default(),
+        prior: Vec::new(),
+        band: Vec::new(),
+        masks,
+        warnings: Vec::new(),
+        initialised_frames: Vec::new(),
+    };
+    let sweeps = crate::io::split_sweeps(sequence, poses);
+    let total: usize = sweeps.iter().map(|s| s.len()).sum();
+    progress.start("segment", total as u64);
+    let mut done = 0u64;
+    let mut seen = BTreeSet::new();
+    for sweep in sweeps {
+        // (position in the sweep, frame): a frame posed twice is segmented once, where it first comes.
+        let frames: Vec<(usize, usize)> = sweep
+            .enumerate()
+            .filter_map(|(k, pose_index)| {
+                let frame = poses.poses[pose_index].frame_index;
+                seen.insert(frame).then_some((k, frame))
+            })
+            .collect();
+        for &(k, frame) in &frames {
+            run.forward(k, frame, init_crop.as_deref());
+            done += 1;
+            progress.advance(done);
+        }
+        if options.backward_pass {
+            run.backward(&frames);
+        }
+    }
+    progress.finish();
+    Ok(BandMasks {
+        width,
+        height,
+        masks: run.masks,
+        warnings: run.warnings,
+        initialised_frames: run.initialised_frames,
+        frames: sequence.frames.clone(),
+        orientation,
+        parameters,
+    })
+}
+
+/// Images, pixel data of the stated size, and poses that name frames of the sequence.
+fn check_segmentable(sequence: &TrackedSequence, poses: &PoseResolution) -> Result<()> {
     let (width, height) = (sequence.width, sequence.height);
     if sequence.is_tracking_only() || width == 0 || height == 0 {
         return Err(Error::InvalidInput(
@@ -620,7 +719,16 @@ pub fn segment_sequence(
             bad.frame_index
         )));
     }
-    let init_full = match init {
+    Ok(())
+}
+
+/// A given initial band as a full-frame mask (`None` for the automatic band).
+fn initial_band_pixels(
+    init: &InitialBand,
+    width: usize,
+    height: usize,
+) -> Result<Option<Vec<bool>>> {
+    match init {
         InitialBand::Mask {
             width: mw,
             height: mh,
@@ -631,16 +739,20 @@ pub fn segment_sequence(
                     "initial band mask is {mw}x{mh} but the frames are {width}x{height}"
                 )));
             }
-            Some(data.clone())
+            Ok(Some(data.clone()))
         }
-        InitialBand::Polygon(vertices) => Some(rasterize_polygon(vertices, width, height)?),
-        InitialBand::Auto => None,
-    };
+        InitialBand::Polygon(vertices) => Ok(Some(rasterize_polygon(vertices, width, height)?)),
+        InitialBand::Auto => Ok(None),
+    }
+}
 
-    let pixel_size_mm = poses
-        .poses
-        .first()
-        .map(|p| pixel_size_of(&p.image_to_world));
+/// The pixel size that converts the options' mm lengths: the first pose's, or 1 (px = mm) where no length
+/// is in mm or there are no poses.
+fn pixel_size_for_lengths(
+    options: &SegmentOptions,
+    poses: &PoseResolution,
+    pixel_size_mm: Option<f64>,
+) -> Result<f64> {
     let needs_mm = [
         options.smoothing_sigma,
         options.likelihood_sigma,
@@ -652,40 +764,25 @@ pub fn segment_sequence(
     ]
     .iter()
     .any(|l| matches!(l, Length::Mm(_)));
-    let px_size = match pixel_size_mm {
-        Some(s) if s.is_finite() && s > 0.0 => s,
-        _ if needs_mm && !poses.poses.is_empty() => {
-            return Err(Error::InvalidInput(
-                "lengths in mm need a pixel size, but the poses give none".into(),
-            ));
-        }
-        _ => 1.0,
-    };
-    let mut clip = effective_clip(clip, width, height);
-    if options.detect_data_region
-        && let Some(c) = clip
-    {
-        clip = data_region(sequence, poses, c);
+    match pixel_size_mm {
+        Some(s) if s.is_finite() && s > 0.0 => Ok(s),
+        _ if needs_mm && !poses.poses.is_empty() => Err(Error::InvalidInput(
+            "lengths in mm need a pixel size, but the poses give none".into(),
+        )),
+        _ => Ok(1.0),
     }
-    let orientation = {
-        let third = sequence.orientation.chars().nth(2);
-        let mut o = String::from("MF");
-        if let Some(c) = third {
-            o.push(c);
-        }
-        o
-    };
-    let mut masks = vec![vec![0u8; width * height]; frame_count];
-    let mut warnings = Vec::new();
-    let mut initialised_frames = Vec::new();
+}
 
+/// The options in pixels of the frame; M from the clip rectangle's width.
+fn resolve_parameters(
+    options: &SegmentOptions,
+    pixel_size_mm: Option<f64>,
+    px_size: f64,
+    crop_width: usize,
+) -> ResolvedParameters {
     let sigma_px = options.likelihood_sigma.to_px(px_size);
     let truncation_px = options.likelihood_truncation.to_px(px_size);
-    let (c1, c0, t) = (
-        options.prior_inside,
-        options.prior_outside,
-        options.threshold,
-    );
+    let (c0, t) = (options.prior_outside, options.threshold);
     // P(e) G(d) + C0 >= T  <=>  d <= sigma sqrt(2 ln(P(e) / (T - C0))), within the truncation.
     let radius_for = |p: f64| {
         if p <= t - c0 {
@@ -694,173 +791,163 @@ pub fn segment_sequence(
             (sigma_px * (2.0 * (p / (t - c0)).ln()).sqrt()).min(truncation_px)
         }
     };
-    let crop_width = clip.map_or(0, |c| c.size_px[0]);
-    let edgel_count = options
-        .edgel_count
-        .unwrap_or_else(|| ((options.edgel_fraction * crop_width as f64).round() as usize).max(1));
-    let parameters = ResolvedParameters {
+    ResolvedParameters {
         pixel_size_mm,
         smoothing_sigma_px: options.smoothing_sigma.to_px(px_size),
         likelihood_sigma_px: sigma_px,
         likelihood_truncation_px: truncation_px,
-        edgel_count,
-        band_radius_inside_px: radius_for(c1),
+        edgel_count: options.edgel_count.unwrap_or_else(|| {
+            ((options.edgel_fraction * crop_width as f64).round() as usize).max(1)
+        }),
+        band_radius_inside_px: radius_for(options.prior_inside),
         band_radius_outside_px: radius_for(c0),
-    };
-    let Some(clip) = clip else {
-        warnings.push("the clip rectangle lies outside the frame: every mask is empty".into());
-        return Ok(BandMasks {
-            width,
-            height,
-            masks,
-            warnings,
-            initialised_frames,
-            frames: sequence.frames.clone(),
-            orientation,
-            parameters,
-        });
-    };
-    let (cw, ch) = (clip.size_px[0], clip.size_px[1]);
-    let cap_px = truncation_px.floor() as u32 + 1;
-    let proximity: Vec<f32> = (0..(cap_px * cap_px))
-        .map(|d2| {
-            let d = (d2 as f64).sqrt();
-            if d <= truncation_px {
-                (-(d2 as f64) / (2.0 * sigma_px * sigma_px)).exp() as f32
-            } else {
-                0.0
+    }
+}
+
+impl Propagator {
+    fn new(
+        options: &SegmentOptions,
+        parameters: &ResolvedParameters,
+        px_size: f64,
+        clip: ClipRect,
+    ) -> Propagator {
+        let (sigma_px, truncation_px) = (
+            parameters.likelihood_sigma_px,
+            parameters.likelihood_truncation_px,
+        );
+        let cap_px = truncation_px.floor() as u32 + 1;
+        let proximity: Vec<f32> = (0..(cap_px * cap_px))
+            .map(|d2| {
+                let d = (d2 as f64).sqrt();
+                if d <= truncation_px {
+                    (-(d2 as f64) / (2.0 * sigma_px * sigma_px)).exp() as f32
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let edgel_count = parameters.edgel_count;
+        Propagator {
+            width: clip.size_px[0],
+            height: clip.size_px[1],
+            taps: gaussian_taps(parameters.smoothing_sigma_px),
+            auto_taps: gaussian_taps(options.auto_smoothing_sigma.to_px(px_size)),
+            edgel_count,
+            min_edgel_gradient: options.min_edgel_gradient as f32,
+            polarity: options.edgel_polarity,
+            chaining: options.edgel_chaining,
+            min_chain_columns: options
+                .edgel_chaining
+                .map_or(0, |c| c.min_chain_length.to_px(px_size).round() as usize),
+            relative_floor: options.min_edgel_relative_strength as f32,
+            reference_decay: 0.8,
+            min_edgels_in_band: ((options.min_edgels_in_band_fraction * edgel_count as f64).ceil()
+                as usize)
+                .max(1),
+            prior_inside: options.prior_inside as f32,
+            prior_outside: options.prior_outside as f32,
+            threshold: options.threshold as f32,
+            cap_px,
+            proximity,
+            band_radius_inside_px: parameters.band_radius_inside_px.max(1.0),
+            auto_keep_fraction: options.auto_keep_fraction as f32,
+            shadow_offset_px: options.auto_shadow_offset.to_px(px_size).round() as usize,
+            shadow_length_px: (options.auto_shadow_length.to_px(px_size).round() as usize).max(1),
+        }
+    }
+}
+
+/// The propagation over a sequence: the band carried from frame to frame (and from sweep to sweep), and
+/// what has been written so far.
+struct BandPropagation<'a> {
+    sequence: &'a TrackedSequence,
+    clip: ClipRect,
+    propagator: Propagator,
+    ws: Workspace,
+    /// The band carried into the next frame (after a frame: that frame's band).
+    prior: Vec<bool>,
+    band: Vec<bool>,
+    masks: Vec<Vec<u8>>,
+    warnings: Vec<String>,
+    initialised_frames: Vec<usize>,
+}
+
+impl BandPropagation<'_> {
+    /// One frame of the forward pass; `k` is its position in the sweep (0: the initial band, `given`, or
+    /// the automatic one).
+    fn forward(&mut self, k: usize, frame: usize, given: Option<&[bool]>) {
+        let (cw, ch) = (self.clip.size_px[0], self.clip.size_px[1]);
+        let width = self.sequence.width;
+        let p = &self.propagator;
+        load_smoothed(&mut self.ws, self.sequence, frame, self.clip, &p.taps);
+        let mut needs_auto = false;
+        if k == 0 {
+            self.ws.reference_strength = 0.0;
+            self.initialised_frames.push(frame);
+            match given {
+                // A later sweep's first frame: the given band joined by the band carried from the
+                // previous sweep's last frame (see `InitialBand`).
+                Some(b) if self.prior.len() == b.len() => {
+                    for (p, &i) in self.prior.iter_mut().zip(b) {
+                        *p |= i;
+                    }
+                }
+                Some(b) => self.prior = b.to_vec(),
+                None => needs_auto = true,
             }
-        })
-        .collect();
-    let propagator = Propagator {
-        width: cw,
-        height: ch,
-        taps: gaussian_taps(parameters.smoothing_sigma_px),
-        auto_taps: gaussian_taps(options.auto_smoothing_sigma.to_px(px_size)),
-        edgel_count,
-        min_edgel_gradient: options.min_edgel_gradient as f32,
-        polarity: options.edgel_polarity,
-        chaining: options.edgel_chaining,
-        min_chain_columns: options
-            .edgel_chaining
-            .map_or(0, |c| c.min_chain_length.to_px(px_size).round() as usize),
-        relative_floor: options.min_edgel_relative_strength as f32,
-        reference_decay: 0.8,
-        min_edgels_in_band: ((options.min_edgels_in_band_fraction * edgel_count as f64).ceil()
-            as usize)
-            .max(1),
-        prior_inside: c1 as f32,
-        prior_outside: c0 as f32,
-        threshold: t as f32,
-        cap_px,
-        proximity,
-        band_radius_inside_px: parameters.band_radius_inside_px.max(1.0),
-        auto_keep_fraction: options.auto_keep_fraction as f32,
-        shadow_offset_px: options.auto_shadow_offset.to_px(px_size).round() as usize,
-        shadow_length_px: (options.auto_shadow_length.to_px(px_size).round() as usize).max(1),
-    };
-    let init_crop: Option<Vec<bool>> = init_full.map(|full| crop_bool(&full, width, clip));
-    if let Some(b) = &init_crop
-        && !b.iter().any(|&x| x)
-    {
-        return Err(Error::InvalidInput(
-            "the initial band covers no pixel inside the clip rectangle".into(),
-        ));
+        }
+        if !needs_auto {
+            let inside = p.step(&mut self.ws, &self.prior, &mut self.band);
+            if k > 0 && inside < p.min_edgels_in_band {
+                self.warnings.push(format!(
+                    "frame {frame}: band lost ({inside} of {} edgels inside the carried band); \
+                     re-initialised automatically",
+                    self.ws.edgels.len()
+                ));
+                self.initialised_frames.push(frame);
+                self.ws.reference_strength = 0.0;
+                needs_auto = true;
+            }
+        }
+        if needs_auto {
+            if p.auto_band(&mut self.ws, &mut self.prior) {
+                p.step(&mut self.ws, &self.prior, &mut self.band);
+            } else {
+                self.warnings.push(format!(
+                    "frame {frame}: automatic initialisation found no echo structure; mask left empty"
+                ));
+                self.band.clear();
+                self.band.resize(cw * ch, false);
+            }
+        }
+        if k > 0 && !needs_auto && !self.band.iter().any(|&b| b) {
+            self.warnings
+                .push(format!("frame {frame}: the band is empty"));
+        }
+        add_to_mask(&self.band, self.clip, width, &mut self.masks[frame]);
+        std::mem::swap(&mut self.prior, &mut self.band);
     }
 
-    let mut ws = Workspace::default();
-    let mut prior: Vec<bool> = Vec::new();
-    let mut band: Vec<bool> = Vec::new();
-    let sweeps = crate::io::split_sweeps(sequence, poses);
-    let total: usize = sweeps.iter().map(|s| s.len()).sum();
-    progress.start("segment", total as u64);
-    let mut done = 0u64;
-    let mut seen = BTreeSet::new();
-    for sweep in sweeps {
-        let mut sweep_frames = Vec::new();
-        for (k, pose_index) in sweep.enumerate() {
-            let frame = poses.poses[pose_index].frame_index;
-            if !seen.insert(frame) {
-                continue;
+    /// The backward pass over a sweep just propagated forward: from its last frame back to its first,
+    /// each frame's mask joined by the band carried back. The band carried to the next sweep stays the
+    /// last frame's.
+    fn backward(&mut self, frames: &[(usize, usize)]) {
+        let width = self.sequence.width;
+        let last_band = self.prior.clone();
+        for &(_, frame) in frames.iter().rev().skip(1) {
+            let p = &self.propagator;
+            load_smoothed(&mut self.ws, self.sequence, frame, self.clip, &p.taps);
+            if p.step(&mut self.ws, &self.prior, &mut self.band) < p.min_edgels_in_band {
+                // Lost going back (a frame between two structures): carry on from this frame's
+                // forward band.
+                band_from_mask(&self.masks[frame], self.clip, width, &mut self.band);
+            } else {
+                add_to_mask(&self.band, self.clip, width, &mut self.masks[frame]);
             }
-            sweep_frames.push(frame);
-            load_smoothed(&mut ws, sequence, frame, clip, &propagator.taps);
-            let mut needs_auto = false;
-            if k == 0 {
-                ws.reference_strength = 0.0;
-                initialised_frames.push(frame);
-                match &init_crop {
-                    // A later sweep's first frame: the given band joined by the band carried from the
-                    // previous sweep's last frame (see `InitialBand`).
-                    Some(b) if prior.len() == b.len() => {
-                        for (p, &i) in prior.iter_mut().zip(b) {
-                            *p |= i;
-                        }
-                    }
-                    Some(b) => prior.clone_from(b),
-                    None => needs_auto = true,
-                }
-            }
-            if !needs_auto {
-                let inside = propagator.step(&mut ws, &prior, &mut band);
-                if k > 0 && inside < propagator.min_edgels_in_band {
-                    warnings.push(format!(
-                        "frame {frame}: band lost ({inside} of {} edgels inside the carried band); \
-                         re-initialised automatically",
-                        ws.edgels.len()
-                    ));
-                    initialised_frames.push(frame);
-                    ws.reference_strength = 0.0;
-                    needs_auto = true;
-                }
-            }
-            if needs_auto {
-                if propagator.auto_band(&mut ws, &mut prior) {
-                    propagator.step(&mut ws, &prior, &mut band);
-                } else {
-                    warnings.push(format!(
-                        "frame {frame}: automatic initialisation found no echo structure; mask left empty"
-                    ));
-                    band.clear();
-                    band.resize(cw * ch, false);
-                }
-            }
-            if k > 0 && !needs_auto && !band.iter().any(|&b| b) {
-                warnings.push(format!("frame {frame}: the band is empty"));
-            }
-            add_to_mask(&band, clip, width, &mut masks[frame]);
-            std::mem::swap(&mut prior, &mut band);
-            done += 1;
-            progress.advance(done);
+            std::mem::swap(&mut self.prior, &mut self.band);
         }
-        if options.backward_pass {
-            // `prior` holds the last frame's band; the next sweep starts from it again.
-            let last_band = prior.clone();
-            for &frame in sweep_frames.iter().rev().skip(1) {
-                load_smoothed(&mut ws, sequence, frame, clip, &propagator.taps);
-                if propagator.step(&mut ws, &prior, &mut band) < propagator.min_edgels_in_band {
-                    // Lost going back (a frame between two structures): carry on from this frame's
-                    // forward band.
-                    band_from_mask(&masks[frame], clip, width, &mut band);
-                } else {
-                    add_to_mask(&band, clip, width, &mut masks[frame]);
-                }
-                std::mem::swap(&mut prior, &mut band);
-            }
-            prior = last_band;
-        }
+        self.prior = last_band;
     }
-    progress.finish();
-    Ok(BandMasks {
-        width,
-        height,
-        masks,
-        warnings,
-        initialised_frames,
-        frames: sequence.frames.clone(),
-        orientation,
-        parameters,
-    })
 }
 
 /// The bounding box, inside `clip`, of the pixels that are non-zero in any of up to 16 frames spread over
