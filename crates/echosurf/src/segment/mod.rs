@@ -251,7 +251,7 @@ impl SegmentOptions {
         for (name, x) in [
             ("min_edgel_gradient", self.min_edgel_gradient),
             (
-                "min_edgel_relative_strength",
+                "min_edgel_relative_strength (--edgel-floor)",
                 self.min_edgel_relative_strength,
             ),
             ("prior_inside", self.prior_inside),

@@ -383,21 +383,49 @@ fn wrong_size_mask_and_empty_polygon_are_errors() {
 #[test]
 fn bad_options_are_rejected_by_name() {
     let s = synthetic_sweep(32, 32, 1, 0.15, 0.0, 2);
-    let options = SegmentOptions {
-        threshold: 0.1,
-        ..Default::default()
-    };
-    let err = segment_sequence(
-        &s.sequence,
-        &s.poses,
-        None,
-        &InitialBand::Auto,
-        &options,
-        &NoProgress,
-    )
-    .unwrap_err()
-    .to_string();
-    assert!(err.contains("prior_outside"), "{err}");
+    let cases = [
+        (
+            SegmentOptions {
+                threshold: 0.1,
+                ..Default::default()
+            },
+            "prior_outside",
+        ),
+        (
+            SegmentOptions {
+                min_edgel_relative_strength: -0.1,
+                ..Default::default()
+            },
+            "--edgel-floor",
+        ),
+        (
+            SegmentOptions {
+                smoothing_sigma: Length::Mm(f64::NAN),
+                ..Default::default()
+            },
+            "smoothing_sigma",
+        ),
+        (
+            SegmentOptions {
+                edgel_count: Some(0),
+                ..Default::default()
+            },
+            "edgel_count",
+        ),
+    ];
+    for (options, name) in cases {
+        let err = segment_sequence(
+            &s.sequence,
+            &s.poses,
+            None,
+            &InitialBand::Auto,
+            &options,
+            &NoProgress,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains(name), "{err}");
+    }
 }
 
 #[test]
