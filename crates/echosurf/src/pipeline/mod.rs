@@ -771,84 +771,19 @@ pub fn extract(
         .collect();
     if options.sheet != Sheet::Iso {
         let beams = FrameBeams::new(sequence, &prepared.poses, trust_distance_mm);
-        let beam = |x: DVec3| beams.beam_at(x);
+        let ridge = RidgeInputs {
+            model: &model,
+            beams: &beams,
+            domain: &domain,
+            surface_options: &surface_options,
+            levels: prepared.levels,
+        };
         meter.stage("ridge", || {
-            for (mesh, used) in meshes.iter_mut().zip(&mut sheets) {
-                let (ridge, stats) =
-                    proximal_sheet_on_ridge(mesh, &model, &beam, &RidgeOptions::default());
-                used.ridge_reached_share = Some(stats.reached_share());
-                if options.sheet == Sheet::Auto
-                    && stats.reached_share() < AUTO_RIDGE_MIN_REACHED_SHARE
-                {
-                    continue;
-                }
-                let (mut sheet, _) = sheet_through_points(
-                    &ridge.vertices,
-                    &ridge.normals,
-                    &domain,
-                    &surface_options,
-                    &options.echo_sheet,
-                )?;
-                if let Some(weak_level) =
-                    options.weak_echoes.level_below(used.level, prepared.levels)
-                {
-                    let weak = WeakRidge {
-                        strong_level: used.level,
-                        weak_level,
-                        reach_mm: options.weak_echoes.reach_mm,
-                        min_seed_area_mm2: options.min_component_area_for(Sheet::EchoRidge),
-                    };
-                    sheet = extend_ridge_sheet(
-                        sheet,
-                        &model,
-                        &beam,
-                        &domain,
-                        &surface_options,
-                        &options.echo_sheet,
-                        &weak,
-                    )?;
-                    used.weak_ridge_level = Some(weak_level);
-                }
-                *mesh = sheet;
-                used.sheet = Sheet::EchoRidge;
-            }
-            Ok::<_, Error>(())
+            move_onto_echo_ridges(&mut meshes, &mut sheets, &ridge, options)
         })?;
     }
-    // Small pieces, then pieces too few frames echo.
     meter.stage("pieces", || {
-        for (mesh, used) in meshes.iter_mut().zip(&mut sheets) {
-            used.min_component_area_mm2 = options.min_component_area_for(used.sheet);
-            if used.min_component_area_mm2 > 0.0 {
-                mesh.remove_small_components(used.min_component_area_mm2);
-            }
-            // A recording of fewer frames cannot show a wall more often than it has frames.
-            used.min_echo_frames = options.min_echo_frames.min(prepared.counts.frames_used);
-            if used.min_echo_frames > 0 {
-                // All kept blocks, not just the fitted samples: the check must not depend on the
-                // sample budget.
-                let (echoes, frames): (Vec<DVec3>, Vec<u32>) = prepared
-                    .all
-                    .positions
-                    .iter()
-                    .zip(&prepared.all.intensities)
-                    .zip(&prepared.all.frame_of_sample)
-                    .filter(|((_, value), _)| **value as f64 >= used.level)
-                    .map(|((&p, _), &f)| (p, f))
-                    .unzip();
-                used.pieces_without_echoes = mesh.remove_components_seen_in_few_frames(
-                    &echoes,
-                    &frames,
-                    ECHO_SUPPORT_RADIUS_MM,
-                    used.min_echo_frames,
-                );
-            }
-            // Only pieces that passed both checks are bridged: a crumb next to a wall stays a crumb.
-            if options.bridge_gap_mm.is_finite() && options.bridge_gap_mm > 0.0 {
-                used.bridge_gap_mm = options.bridge_gap_mm;
-                used.bridged_pieces = mesh.bridge_near_pieces(options.bridge_gap_mm);
-            }
-        }
+        remove_and_join_pieces(&mut meshes, &mut sheets, &prepared, options)
     });
     for (used, mesh) in sheets.iter().zip(&meshes) {
         if mesh.is_empty() && used.pieces_without_echoes > 0 {
@@ -912,6 +847,105 @@ pub fn extract(
         frame_outlines,
         report,
     })
+}
+
+/// What the ridge stage reads: the fitted field, the beam at each point, where the surface may go.
+struct RidgeInputs<'a> {
+    model: &'a RbfModel,
+    beams: &'a FrameBeams,
+    domain: &'a SurfaceDomain,
+    surface_options: &'a SurfaceOptions,
+    levels: Option<IntensityLevels>,
+}
+
+/// Replaces each level's iso-surface by one sheet on its echoes' ridges, extended by the ridges of the
+/// weaker echoes that continue them (`--sheet ridge`; with `--sheet auto`, only where enough of the
+/// iso-surface's probe side reached a ridge).
+fn move_onto_echo_ridges(
+    meshes: &mut [Mesh],
+    sheets: &mut [SheetUsed],
+    inputs: &RidgeInputs,
+    options: &ExtractOptions,
+) -> Result<()> {
+    let beam = |x: DVec3| inputs.beams.beam_at(x);
+    for (mesh, used) in meshes.iter_mut().zip(sheets) {
+        let (ridge, stats) =
+            proximal_sheet_on_ridge(mesh, inputs.model, &beam, &RidgeOptions::default());
+        used.ridge_reached_share = Some(stats.reached_share());
+        if options.sheet == Sheet::Auto && stats.reached_share() < AUTO_RIDGE_MIN_REACHED_SHARE {
+            continue;
+        }
+        let (mut sheet, _) = sheet_through_points(
+            &ridge.vertices,
+            &ridge.normals,
+            inputs.domain,
+            inputs.surface_options,
+            &options.echo_sheet,
+        )?;
+        if let Some(weak_level) = options.weak_echoes.level_below(used.level, inputs.levels) {
+            let weak = WeakRidge {
+                strong_level: used.level,
+                weak_level,
+                reach_mm: options.weak_echoes.reach_mm,
+                min_seed_area_mm2: options.min_component_area_for(Sheet::EchoRidge),
+            };
+            sheet = extend_ridge_sheet(
+                sheet,
+                inputs.model,
+                &beam,
+                inputs.domain,
+                inputs.surface_options,
+                &options.echo_sheet,
+                &weak,
+            )?;
+            used.weak_ridge_level = Some(weak_level);
+        }
+        *mesh = sheet;
+        used.sheet = Sheet::EchoRidge;
+    }
+    Ok(())
+}
+
+/// Removes small pieces, then pieces too few frames echo, then joins the pieces left that continue one
+/// another across small gaps.
+fn remove_and_join_pieces(
+    meshes: &mut [Mesh],
+    sheets: &mut [SheetUsed],
+    prepared: &PreparedSamples,
+    options: &ExtractOptions,
+) {
+    for (mesh, used) in meshes.iter_mut().zip(sheets) {
+        used.min_component_area_mm2 = options.min_component_area_for(used.sheet);
+        if used.min_component_area_mm2 > 0.0 {
+            mesh.remove_small_components(used.min_component_area_mm2);
+        }
+        // A recording of fewer frames cannot show a wall more often than it has frames.
+        used.min_echo_frames = options.min_echo_frames.min(prepared.counts.frames_used);
+        if used.min_echo_frames > 0 {
+            // All kept blocks, not just the fitted samples: the check must not depend on the
+            // sample budget.
+            let (echoes, frames): (Vec<DVec3>, Vec<u32>) = prepared
+                .all
+                .positions
+                .iter()
+                .zip(&prepared.all.intensities)
+                .zip(&prepared.all.frame_of_sample)
+                .filter(|((_, value), _)| **value as f64 >= used.level)
+                .map(|((&p, _), &f)| (p, f))
+                .unzip();
+            used.pieces_without_echoes = mesh.remove_components_seen_in_few_frames(
+                &echoes,
+                &frames,
+                ECHO_SUPPORT_RADIUS_MM,
+                used.min_echo_frames,
+            );
+        }
+        // Only pieces that passed both checks are bridged: a crumb next to a wall stays a crumb.
+        if options.bridge_gap_mm.is_finite() && options.bridge_gap_mm > 0.0 {
+            used.bridge_gap_mm = options.bridge_gap_mm;
+            used.bridged_pieces = mesh.bridge_near_pieces(options.bridge_gap_mm);
+        }
+    }
 }
 
 fn bounds(points: &[DVec3]) -> (DVec3, DVec3) {
