@@ -49,6 +49,11 @@ fn segment_spine(out: &Path, extra: &[String]) -> Vec<u8> {
     }
 }
 
+/// Share of the mask pixels that are kept (255).
+fn kept_share(px: &[u8]) -> f64 {
+    px.iter().filter(|&&x| x == 255).count() as f64 / px.len() as f64
+}
+
 #[test]
 fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
     let dir = tempfile::tempdir().unwrap();
@@ -58,7 +63,7 @@ fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
         &["--preview".into(), preview.display().to_string()],
     );
     assert!(px.iter().all(|&x| x == 0 || x == 255));
-    let kept = px.iter().filter(|&&x| x == 255).count() as f64 / px.len() as f64;
+    let kept = kept_share(&px);
     // Every frame has a band, and the band is a small part of the frame.
     for f in 0..21 {
         assert!(
@@ -75,7 +80,7 @@ fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
         &["--backward-pass".into()],
     );
     assert!(px.iter().zip(&back_px).all(|(&a, &b)| a == 0 || b == 255));
-    let kept_back = back_px.iter().filter(|&&x| x == 255).count() as f64 / px.len() as f64;
+    let kept_back = kept_share(&back_px);
     eprintln!("kept one-way {kept:.4}, with the backward pass {kept_back:.4}");
     assert!(kept_back >= kept && kept_back < 0.30, "{kept_back}");
 
@@ -93,7 +98,7 @@ fn segment_writes_masks_of_the_sequence_size_and_a_preview() {
         &dir.path().join("masks_narrow.mha"),
         &["--smoothing-mm", "1", "--edgel-floor", "0.4"].map(String::from),
     );
-    let kept_narrow = narrow.iter().filter(|&&x| x == 255).count() as f64 / px.len() as f64;
+    let kept_narrow = kept_share(&narrow);
     eprintln!("kept with --smoothing-mm 1 --edgel-floor 0.4: {kept_narrow:.4}");
     assert!(
         kept_narrow > 0.01 && kept_narrow < 0.8 * kept,

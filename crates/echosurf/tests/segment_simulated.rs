@@ -251,42 +251,45 @@ fn assert_coverage(c: &Coverage, min_near_kept: &[(f64, f64)]) {
     }
 }
 
-/// Coverage of the visible surface of `kind` on `pass` by the bands `options` give, from the automatic
-/// band or a polygon drawn on the first frame.
-fn coverage_on(kind: PhantomKind, pass: Pass, polygon: bool, options: &SegmentOptions) -> Coverage {
-    let sim = simulated_pass(kind.clone(), pass);
-    let poses = true_poses(&sim, &kind);
-    let init = if polygon {
-        polygon_on_first_frame(&sim, &kind, &poses)
-    } else {
-        InitialBand::Auto
-    };
-    coverage(
-        &sim,
-        &kind,
-        &poses,
-        &segment_with(&sim, &poses, &init, options),
-    )
+/// One simulated pass over a phantom, with the frames the test judges (see [`true_poses`]).
+struct PhantomPass {
+    kind: PhantomKind,
+    sim: Simulation,
+    poses: PoseResolution,
 }
 
-/// Chained-edgel coverage (`SegmentOptions::chained`), with or without the backward pass.
-fn chained_coverage_on(
-    kind: PhantomKind,
-    pass: Pass,
-    polygon: bool,
-    backward_pass: bool,
-) -> Coverage {
-    let options = SegmentOptions {
+impl PhantomPass {
+    fn new(kind: PhantomKind, pass: Pass) -> PhantomPass {
+        let sim = simulated_pass(kind.clone(), pass);
+        let poses = true_poses(&sim, &kind);
+        PhantomPass { kind, sim, poses }
+    }
+
+    /// Coverage of the visible surface by the bands `options` give, from the automatic band or a
+    /// polygon drawn on the first frame.
+    fn coverage(&self, polygon: bool, options: &SegmentOptions) -> Coverage {
+        let init = if polygon {
+            polygon_on_first_frame(&self.sim, &self.kind, &self.poses)
+        } else {
+            InitialBand::Auto
+        };
+        let masks = segment_with(&self.sim, &self.poses, &init, options);
+        coverage(&self.sim, &self.kind, &self.poses, &masks)
+    }
+}
+
+/// Chained-edgel options (`SegmentOptions::chained`), with or without the backward pass.
+fn chained(backward_pass: bool) -> SegmentOptions {
+    SegmentOptions {
         backward_pass,
         ..SegmentOptions::chained()
-    };
-    coverage_on(kind, pass, polygon, &options)
+    }
 }
 
-/// [`chained_coverage_on`] the small pass (the sphere: 12 frames; the duck: 24).
+/// Chained-edgel coverage on the small pass (the sphere: 12 frames; the duck: 24).
 fn chained_coverage(kind: PhantomKind, polygon: bool, backward_pass: bool) -> Coverage {
     let pass = small_pass(&kind);
-    chained_coverage_on(kind, pass, polygon, backward_pass)
+    PhantomPass::new(kind, pass).coverage(polygon, &chained(backward_pass))
 }
 
 /// Measured with `SegmentOptions::chained()`: 100 % (45 deg) / 99.7 % (60 deg) near the surface, 26.5 %
@@ -354,8 +357,9 @@ fn simulated_duck_polygon_init() {
 #[test]
 fn default_pass_strong_echo_kept_in_a_narrow_band() {
     for kind in [PhantomKind::Sphere, PhantomKind::Duck] {
+        let own = PhantomPass::new(kind.clone(), DEFAULT_PASS);
         for polygon in [false, true] {
-            let c = chained_coverage_on(kind.clone(), DEFAULT_PASS, polygon, false);
+            let c = own.coverage(polygon, &chained(false));
             eprintln!(
                 "{kind:?}, polygon {polygon}: whole surface within 1 mm kept {:.3}",
                 c.whole_surface_kept
@@ -380,11 +384,11 @@ fn paper_edgels_smoothed_1mm_with_floor_0_4_keep_a_narrow_band() {
         ..SegmentOptions::default()
     };
     for kind in [PhantomKind::Sphere, PhantomKind::Duck] {
+        let small = PhantomPass::new(kind.clone(), small_pass(&kind));
+        let own = PhantomPass::new(kind, DEFAULT_PASS);
         for polygon in [false, true] {
-            let small = coverage_on(kind.clone(), small_pass(&kind), polygon, &options);
-            assert_coverage(&small, &[(45.0, 0.99)]);
-            let own = coverage_on(kind.clone(), DEFAULT_PASS, polygon, &options);
-            assert_coverage(&own, &[(30.0, 0.99)]);
+            assert_coverage(&small.coverage(polygon, &options), &[(45.0, 0.99)]);
+            assert_coverage(&own.coverage(polygon, &options), &[(30.0, 0.99)]);
         }
     }
 }
