@@ -46,6 +46,23 @@ enum Command {
     Demo(cmd::demo::Args),
 }
 
+/// The error and its causes on one line, each cause once. The library's file errors already end with
+/// their cause (so a library user's `to_string()` says why), and anyhow's `{:#}` would repeat it:
+/// "a.mha: No such file or directory (os error 2): No such file or directory (os error 2)".
+fn error_message(error: &anyhow::Error) -> String {
+    let mut message = String::new();
+    for cause in error.chain() {
+        let text = cause.to_string();
+        if message.is_empty() {
+            message = text;
+        } else if !message.ends_with(&text) {
+            message.push_str(": ");
+            message.push_str(&text);
+        }
+    }
+    message
+}
+
 /// Exit code of a run stopped by Ctrl-C (128 + SIGINT), as shells report it.
 const INTERRUPTED_EXIT_CODE: i32 = 130;
 
@@ -81,8 +98,44 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_message(&e));
             ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::error_message;
+    use anyhow::Context;
+
+    fn missing_file_error() -> echosurf::Error {
+        let source = std::io::Error::from(std::io::ErrorKind::NotFound);
+        echosurf::Error::io("sweep.mha", source)
+    }
+
+    #[test]
+    fn a_file_error_names_its_cause_once() {
+        let cause = std::io::Error::from(std::io::ErrorKind::NotFound).to_string();
+        let error = anyhow::Error::new(missing_file_error());
+        assert_eq!(error_message(&error), format!("sweep.mha: {cause}"));
+        let in_context = Err::<(), _>(missing_file_error())
+            .context("segmenting sweep.mha")
+            .unwrap_err();
+        assert_eq!(
+            error_message(&in_context),
+            format!("segmenting sweep.mha: sweep.mha: {cause}")
+        );
+    }
+
+    #[test]
+    fn causes_not_already_said_are_all_kept() {
+        let error = anyhow::anyhow!("the innermost")
+            .context("the middle")
+            .context("the outer");
+        assert_eq!(
+            error_message(&error),
+            "the outer: the middle: the innermost"
+        );
     }
 }

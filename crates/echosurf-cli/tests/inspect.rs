@@ -162,8 +162,12 @@ fn bad_inputs_exit_non_zero_naming_the_file() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("Reference"));
 
-    // A file that does not exist.
-    let out = inspect(&[dir.path().join("nothing.mha").to_str().unwrap()]);
+    // A file that does not exist: named, with the system's reason said once.
+    let nothing = dir.path().join("nothing.mha");
+    let out = inspect(&[nothing.to_str().unwrap()]);
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("nothing.mha"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    let reason = std::fs::File::open(&nothing).unwrap_err().to_string();
+    assert!(err.contains("nothing.mha"), "{err}");
+    assert_eq!(err.matches(reason.as_str()).count(), 1, "{err}");
 }
