@@ -229,3 +229,119 @@ fn memory_budget_refuses_up_front_with_what_would_fit() {
     let (out, _) = extract(&["--memory-budget", "0"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("positive number of MB"));
 }
+
+/// An output named like an input (the sequence, its detached `.raw`, the calibration) or like another
+/// output is refused before any work, and every input keeps its bytes.
+#[test]
+fn outputs_never_replace_inputs_or_each_other() {
+    let dir = tempfile::tempdir().unwrap();
+    let copy = |name: &str| {
+        let to = dir.path().join(name);
+        std::fs::copy(common::real_data::real(name), &to).unwrap();
+        to
+    };
+    let nwire = copy("NwirePhantomFreehand.igs.mha");
+    let config = copy("PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml");
+    let video = copy("Prostate10_video.igs.mhd");
+    let raw = copy("Prostate10_video.raw");
+    let inputs = [&nwire, &config, &video, &raw];
+    let before: Vec<Vec<u8>> = inputs.iter().map(|p| std::fs::read(p).unwrap()).collect();
+    let refused = |args: Vec<PathBuf>, says: &str| {
+        let start = Instant::now();
+        let out = Command::new(BIN).args(&args).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} succeeded");
+        assert!(stderr.contains(says), "{args:?}: {stderr}");
+        assert!(!stderr.contains("panicked"), "{stderr}");
+        let seconds = start.elapsed().as_secs_f64();
+        assert!(seconds < MAX_SECONDS, "{args:?} took {seconds} s to refuse");
+    };
+    let p = PathBuf::from;
+    let in_dir = |name: &str| dir.path().join(name);
+    std::fs::create_dir(in_dir("sub")).unwrap();
+    // The masks would have replaced the recording.
+    refused(
+        vec![
+            p("segment"),
+            nwire.clone(),
+            p("--config"),
+            config.clone(),
+            p("--auto-init"),
+            p("--out"),
+            in_dir("sub/../NwirePhantomFreehand.igs.mha"),
+        ],
+        "that is",
+    );
+    // A detached data file is an input too.
+    refused(
+        vec![
+            p("extract"),
+            video.clone(),
+            p("--config"),
+            config.clone(),
+            p("--out"),
+            raw.clone(),
+        ],
+        "an input of this run",
+    );
+    refused(
+        vec![
+            p("reconstruct"),
+            nwire.clone(),
+            p("--config"),
+            config.clone(),
+            p("--out"),
+            config.clone(),
+        ],
+        "--out",
+    );
+    // Two outputs of one run in one file, also through a level's derived name.
+    refused(
+        vec![
+            p("extract"),
+            nwire.clone(),
+            p("--config"),
+            config.clone(),
+            p("--out"),
+            in_dir("mesh.ply"),
+            p("--preview"),
+            in_dir("mesh.ply"),
+        ],
+        "--out and --preview both name",
+    );
+    refused(
+        vec![
+            p("extract"),
+            nwire.clone(),
+            p("--config"),
+            config.clone(),
+            p("--iso"),
+            p("40,60"),
+            p("--out"),
+            in_dir("mesh.ply"),
+            p("--report"),
+            in_dir("mesh_iso60.ply"),
+        ],
+        "--out (iso 60) and --report both name",
+    );
+    for (path, bytes) in inputs.iter().zip(&before) {
+        assert_eq!(
+            &std::fs::read(path).unwrap(),
+            bytes,
+            "{} changed",
+            path.display()
+        );
+    }
+    let mut left: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    let mut expected: Vec<String> = inputs
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .chain(["sub".to_string()])
+        .collect();
+    expected.sort();
+    assert_eq!(left, expected, "a refused run wrote a file");
+}

@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use echosurf::io::PointCloud;
 use echosurf::rbf::RbfModel;
 
+use super::outputs::{output, refuse_overwriting_inputs};
+
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Fitted model (.esrbf) from `echosurf fit`.
@@ -17,6 +19,8 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    let inputs = [args.model.clone(), args.points.clone()];
+    refuse_overwriting_inputs(&inputs, &[output("--out", &args.out)])?;
     let model = RbfModel::load(&args.model)?;
     let cloud = echosurf::io::read_point_cloud(&args.points)?;
     let (values, gradients) = model.values_and_gradients(&cloud.positions);

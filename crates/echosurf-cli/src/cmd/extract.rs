@@ -12,6 +12,7 @@ use echosurf::render::{RenderOptions, render_views, write_png};
 use echosurf::segment::InitialBand;
 use echosurf::surface::{SheetOptions, SurfaceOptions};
 
+use super::outputs::{output, refuse_overwriting_inputs};
 use super::segment::SegmentArgs;
 use crate::progress::BarProgress;
 
@@ -160,6 +161,20 @@ pub fn mesh_path(out: &Path, level: f64, several: bool) -> PathBuf {
     out.with_file_name(format!("{stem}_iso{}.{ext}", format_level(level)))
 }
 
+/// The mesh files of `iso`'s levels (as [`mesh_path`] names them), each with the option behind it.
+pub fn mesh_outputs(out: &Path, iso: &IsoLevels) -> Vec<(String, PathBuf)> {
+    match iso {
+        IsoLevels::Levels(levels) if levels.len() > 1 => levels
+            .iter()
+            .map(|&level| {
+                let option = format!("--out (iso {})", format_level(level));
+                output(option, &mesh_path(out, level, true))
+            })
+            .collect(),
+        _ => vec![output("--out", out)],
+    }
+}
+
 fn format_level(level: f64) -> String {
     if level.fract() == 0.0 {
         format!("{level:.0}")
@@ -287,6 +302,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.ridge_weak
         );
     }
+    refuse_overwriting_inputs(&seg.input_files(), &planned_outputs(&args, &iso))?;
     let sequence = io::read_sequence(&seg.sequence)?;
     let calibration = io::read_calibration(&seg.config)?;
     let init = match &seg.init {
@@ -348,6 +364,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     write_outputs(&args, &output)?;
     print_summary(&args, &output);
     Ok(())
+}
+
+/// The files `write_outputs` will write, each with the option that names it: one mesh per level
+/// (`--iso auto` is one level), then the optional model, samples, report and preview.
+fn planned_outputs(args: &Args, iso: &IsoLevels) -> Vec<(String, PathBuf)> {
+    let mut files = mesh_outputs(&args.out, iso);
+    for (option, path) in [
+        ("--model", &args.model),
+        ("--samples", &args.samples),
+        ("--report", &args.report),
+        ("--preview", &args.preview),
+    ] {
+        files.extend(path.as_deref().map(|p| output(option, p)));
+    }
+    files
 }
 
 /// Writes meshes, then the optional model, samples, report and preview (each atomically).

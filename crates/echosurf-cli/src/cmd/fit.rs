@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use anyhow::Context;
 use echosurf::rbf::{FitOptions, SolverChoice, fit};
 
+use super::outputs::{output, refuse_overwriting_inputs};
+
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Point cloud PLY with float x y z and a float `intensity` vertex property.
@@ -37,6 +39,10 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    refuse_overwriting_inputs(
+        std::slice::from_ref(&args.points),
+        &[output("--out", &args.out)],
+    )?;
     let cloud = echosurf::io::read_point_cloud(&args.points)?;
     let intensity = cloud.scalar("intensity").with_context(|| {
         format!(

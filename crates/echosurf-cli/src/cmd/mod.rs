@@ -6,6 +6,7 @@ pub mod eval;
 pub mod extract;
 pub mod fit;
 pub mod inspect;
+pub mod outputs;
 pub mod reconstruct;
 pub mod render;
 pub mod sample;

@@ -12,6 +12,8 @@ use echosurf::voxel::{
 };
 use glam::DVec3;
 
+use super::outputs::{output, refuse_overwriting_inputs};
+
 use crate::progress::BarProgress;
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -70,6 +72,9 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut inputs = echosurf::io::sequence_files(&args.sequence);
+    inputs.push(args.config.clone());
+    refuse_overwriting_inputs(&inputs, &[output("--out", &args.out)])?;
     let started = Instant::now();
     let sequence = read_sequence(&args.sequence)?;
     let calibration = read_calibration(&args.config)?;

@@ -4,6 +4,8 @@ use std::path::PathBuf;
 
 use echosurf::render::{Projection, RenderOptions, render_views, write_png};
 
+use super::outputs::{output, refuse_overwriting_inputs};
+
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The mesh to draw (.ply, .stl or .obj).
@@ -23,6 +25,9 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut inputs = vec![args.mesh.clone()];
+    inputs.extend(args.ghost.iter().cloned());
+    refuse_overwriting_inputs(&inputs, &[output("--out", &args.out)])?;
     let mesh = echosurf::io::read_mesh(&args.mesh)?;
     let ghost = match &args.ghost {
         Some(path) => Some(echosurf::io::read_mesh(path)?),

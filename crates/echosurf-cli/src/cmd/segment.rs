@@ -9,6 +9,7 @@ use echosurf::segment::{
     write_band_preview,
 };
 
+use super::outputs::{output, refuse_overwriting_inputs};
 use crate::progress::BarProgress;
 
 /// Options shared by `segment` and `sample`: the sequence, its calibration, the initial band and the
@@ -78,6 +79,14 @@ pub struct SegmentArgs {
 }
 
 impl SegmentArgs {
+    /// Every file this reads: the sequence (with a detached data file), the calibration, the band.
+    pub fn input_files(&self) -> Vec<PathBuf> {
+        let mut files = io::sequence_files(&self.sequence);
+        files.push(self.config.clone());
+        files.extend(self.init.iter().cloned());
+        files
+    }
+
     pub fn options(&self) -> SegmentOptions {
         let defaults = if self.chain_edgels {
             SegmentOptions::chained()
@@ -169,6 +178,9 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut outputs = vec![output("--out", &args.out)];
+    outputs.extend(args.preview.as_deref().map(|p| output("--preview", p)));
+    refuse_overwriting_inputs(&args.segment.input_files(), &outputs)?;
     let (sequence, poses, masks) = args.segment.run()?;
     io::write_sequence(&args.out, &masks.to_sequence(), true)?;
     if let Some(path) = &args.preview {

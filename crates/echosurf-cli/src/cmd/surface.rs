@@ -9,7 +9,8 @@ use echosurf::pipeline::{IsoLevels, surface_domain};
 use echosurf::rbf::RbfModel;
 use echosurf::surface::{SurfaceOptions, extract_surfaces_with_stats};
 
-use super::extract::{mesh_path, parse_iso};
+use super::extract::{mesh_outputs, mesh_path, parse_iso};
+use super::outputs::refuse_overwriting_inputs;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -36,6 +37,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "--iso: give the level(s) as numbers (a model carries no echo statistics)"
         ),
     };
+    let outputs = mesh_outputs(&args.out, &IsoLevels::Levels(levels.clone()));
+    refuse_overwriting_inputs(std::slice::from_ref(&args.model), &outputs)?;
     let model = RbfModel::load(&args.model)?;
     let centres = model.centres().to_vec();
     if centres.is_empty() {

@@ -15,7 +15,8 @@ pub mod summary;
 
 pub use summary::{SequenceSummary, summarise};
 
-use std::path::Path;
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
 
 pub use mesh_io::{read_mesh, write_mesh};
 pub use plus_config::{read_calibration, write_calibration};
@@ -53,4 +54,104 @@ pub fn read_sequence(path: &Path) -> Result<TrackedSequence> {
 /// Writes a tracked sequence as a PLUS `.mha` file (LOCAL data), zlib-compressed if `compress`.
 pub fn write_sequence(path: &Path, sequence: &TrackedSequence, compress: bool) -> Result<()> {
     metaimage::write_sequence(path, sequence, compress)
+}
+
+/// The files a sequence is read from: the header, and the detached data file it names (`.mhd` +
+/// `.raw`/`.zraw`, NRRD `data file:`), so that a command can refuse to write over any of them. Best
+/// effort and cheap: a header that cannot be scanned gives the header alone, and the reader reports
+/// what is wrong with it.
+pub fn sequence_files(path: &Path) -> Vec<PathBuf> {
+    let mut files = vec![path.to_path_buf()];
+    if let Some(name) = detached_data_name(path) {
+        let listed = name.eq_ignore_ascii_case("LOCAL") || name.eq_ignore_ascii_case("LIST");
+        if !(name.is_empty() || listed || name.contains('%')) {
+            files.push(metaimage::sibling_path(path, &name));
+        }
+    }
+    files
+}
+
+/// The value of `ElementDataFile` (MetaImage) or `data file` / `datafile` (NRRD), read from the header
+/// only: the scan stops at the first of them, at the blank line that ends a NRRD header, or after
+/// `HEADER_SCAN_BYTES` (PLUS headers run to about 300 bytes a frame).
+fn detached_data_name(path: &Path) -> Option<String> {
+    const HEADER_SCAN_BYTES: u64 = 16 << 20;
+    let file = std::fs::File::open(path).ok()?;
+    let mut reader = BufReader::new(file.take(HEADER_SCAN_BYTES));
+    let mut line = Vec::new();
+    let mut nrrd = false;
+    for line_number in 0.. {
+        line.clear();
+        if reader.read_until(b'\n', &mut line).ok()? == 0 {
+            return None;
+        }
+        let text = String::from_utf8_lossy(&line);
+        let text = text.trim();
+        if line_number == 0 {
+            nrrd = text.starts_with("NRRD");
+            continue;
+        }
+        if nrrd {
+            if text.is_empty() {
+                return None;
+            }
+            if let Some((key, value)) = text.split_once(':')
+                && !value.starts_with('=')
+                && matches!(
+                    key.trim().to_ascii_lowercase().as_str(),
+                    "data file" | "datafile"
+                )
+            {
+                return Some(value.trim().to_string());
+            }
+        } else if let Some((key, value)) = text.split_once('=')
+            && key.trim() == "ElementDataFile"
+        {
+            return Some(value.trim().to_string());
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::sequence_files;
+    use std::path::PathBuf;
+
+    #[test]
+    fn sequence_files_name_a_detached_data_file_and_nothing_else() {
+        let dir = tempfile::tempdir().unwrap();
+        let write = |name: &str, text: &str| {
+            let path = dir.path().join(name);
+            std::fs::write(&path, text).unwrap();
+            path
+        };
+        let mhd = write(
+            "a.mhd",
+            "ObjectType = Image\nNDims = 3\nElementDataFile = a.raw\n",
+        );
+        assert_eq!(
+            sequence_files(&mhd),
+            vec![mhd.clone(), dir.path().join("a.raw")]
+        );
+        let local = write(
+            "b.mha",
+            "ObjectType = Image\nNDims = 3\nElementDataFile = LOCAL\n\x01=\x02",
+        );
+        assert_eq!(sequence_files(&local), vec![local.clone()]);
+        let nrrd = write(
+            "c.nrrd",
+            "NRRD0004\ntype: uint8\nSeq_Frame0000_Note:=data file: x\ndata file: c.raw.gz\n\n",
+        );
+        assert_eq!(
+            sequence_files(&nrrd),
+            vec![nrrd.clone(), dir.path().join("c.raw.gz")]
+        );
+        let nrrd_attached = write("d.nrrd", "NRRD0004\ntype: uint8\n\ndata file: no\n");
+        assert_eq!(sequence_files(&nrrd_attached), vec![nrrd_attached.clone()]);
+        let pattern = write("e.mhd", "NDims = 3\nElementDataFile = e%03d.raw\n");
+        assert_eq!(sequence_files(&pattern), vec![pattern.clone()]);
+        let missing = PathBuf::from("/nonexistent/f.mhd");
+        assert_eq!(sequence_files(&missing), vec![missing.clone()]);
+    }
 }
