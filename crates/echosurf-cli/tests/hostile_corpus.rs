@@ -230,8 +230,8 @@ fn memory_budget_refuses_up_front_with_what_would_fit() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("positive number of MB"));
 }
 
-/// An output named like an input (the sequence, its detached `.raw`, the calibration) or like another
-/// output is refused before any work, and every input keeps its bytes.
+/// An output named like an input (the sequence, its detached `.raw`, the calibration), like another
+/// output or for another format is refused before any work, and every input keeps its bytes.
 #[test]
 fn outputs_never_replace_inputs_or_each_other() {
     let dir = tempfile::tempdir().unwrap();
@@ -323,6 +323,30 @@ fn outputs_never_replace_inputs_or_each_other() {
             in_dir("mesh_iso60.ply"),
         ],
         "--out (iso 60) and --report both name",
+    );
+    // An output named for another format, refused before the work rather than after it.
+    refused(
+        vec![
+            p("segment"),
+            nwire.clone(),
+            p("--config"),
+            config.clone(),
+            p("--auto-init"),
+            p("--out"),
+            in_dir("masks.png"),
+        ],
+        "must end in .mha",
+    );
+    refused(
+        vec![
+            p("extract"),
+            nwire.clone(),
+            p("--config"),
+            config.clone(),
+            p("--out"),
+            in_dir("mesh.xyz"),
+        ],
+        "must end in .ply, .stl, .obj",
     );
     for (path, bytes) in inputs.iter().zip(&before) {
         assert_eq!(

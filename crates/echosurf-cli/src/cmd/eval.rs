@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use echosurf::io::PointCloud;
 use echosurf::rbf::RbfModel;
 
-use super::outputs::{output, refuse_overwriting_inputs};
+use super::outputs::{Holds, check_outputs, output};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -20,7 +20,7 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let inputs = [args.model.clone(), args.points.clone()];
-    refuse_overwriting_inputs(&inputs, &[output("--out", &args.out)])?;
+    check_outputs(&inputs, &[output("--out", &args.out, Holds::PointCloud)])?;
     let model = RbfModel::load(&args.model)?;
     let cloud = echosurf::io::read_point_cloud(&args.points)?;
     let (values, gradients) = model.values_and_gradients(&cloud.positions);

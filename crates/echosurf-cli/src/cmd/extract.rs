@@ -12,7 +12,7 @@ use echosurf::render::{RenderOptions, render_views, write_png};
 use echosurf::segment::InitialBand;
 use echosurf::surface::{SheetOptions, SurfaceOptions};
 
-use super::outputs::{output, refuse_overwriting_inputs};
+use super::outputs::{Holds, Output, check_outputs, output};
 use super::segment::SegmentArgs;
 use crate::progress::BarProgress;
 
@@ -162,16 +162,16 @@ pub fn mesh_path(out: &Path, level: f64, several: bool) -> PathBuf {
 }
 
 /// The mesh files of `iso`'s levels (as [`mesh_path`] names them), each with the option behind it.
-pub fn mesh_outputs(out: &Path, iso: &IsoLevels) -> Vec<(String, PathBuf)> {
+pub fn mesh_outputs(out: &Path, iso: &IsoLevels) -> Vec<Output> {
     match iso {
         IsoLevels::Levels(levels) if levels.len() > 1 => levels
             .iter()
             .map(|&level| {
                 let option = format!("--out (iso {})", format_level(level));
-                output(option, &mesh_path(out, level, true))
+                output(option, &mesh_path(out, level, true), Holds::Mesh)
             })
             .collect(),
-        _ => vec![output("--out", out)],
+        _ => vec![output("--out", out, Holds::Mesh)],
     }
 }
 
@@ -302,7 +302,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.ridge_weak
         );
     }
-    refuse_overwriting_inputs(&seg.input_files(), &planned_outputs(&args, &iso))?;
+    check_outputs(&seg.input_files(), &planned_outputs(&args, &iso))?;
     let sequence = io::read_sequence(&seg.sequence)?;
     let calibration = io::read_calibration(&seg.config)?;
     let init = match &seg.init {
@@ -368,15 +368,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 /// The files `write_outputs` will write, each with the option that names it: one mesh per level
 /// (`--iso auto` is one level), then the optional model, samples, report and preview.
-fn planned_outputs(args: &Args, iso: &IsoLevels) -> Vec<(String, PathBuf)> {
+fn planned_outputs(args: &Args, iso: &IsoLevels) -> Vec<Output> {
     let mut files = mesh_outputs(&args.out, iso);
-    for (option, path) in [
-        ("--model", &args.model),
-        ("--samples", &args.samples),
-        ("--report", &args.report),
-        ("--preview", &args.preview),
+    for (option, path, holds) in [
+        ("--model", &args.model, Holds::AnyName),
+        ("--samples", &args.samples, Holds::PointCloud),
+        ("--report", &args.report, Holds::AnyName),
+        ("--preview", &args.preview, Holds::Png),
     ] {
-        files.extend(path.as_deref().map(|p| output(option, p)));
+        files.extend(path.as_deref().map(|p| output(option, p, holds)));
     }
     files
 }

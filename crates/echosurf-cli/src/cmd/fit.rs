@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use echosurf::rbf::{FitOptions, SolverChoice, fit};
 
-use super::outputs::{output, refuse_overwriting_inputs};
+use super::outputs::{Holds, check_outputs, output};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -39,9 +39,9 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    refuse_overwriting_inputs(
+    check_outputs(
         std::slice::from_ref(&args.points),
-        &[output("--out", &args.out)],
+        &[output("--out", &args.out, Holds::AnyName)],
     )?;
     let cloud = echosurf::io::read_point_cloud(&args.points)?;
     let intensity = cloud.scalar("intensity").with_context(|| {

@@ -1,42 +1,112 @@
-//! Checks on where a command writes, made before any work: an output never replaces one of the run's
-//! inputs (`segment sweep.mha --out sweep.mha` would otherwise destroy the recording), and no two
-//! outputs of one run share a file (the later would silently replace the earlier).
+//! Checks on where a command writes, made before any work, so a mistake costs no minutes of
+//! computing and destroys nothing: an output never replaces one of the run's inputs (`segment
+//! sweep.mha --out sweep.mha` would otherwise destroy the recording), no two outputs of one run share
+//! a file (the later would silently replace the earlier), and each output's name ends in the extension
+//! of what is written into it (a PNG picture is not written into `view.jpg`).
 
 use std::path::{Path, PathBuf};
 
-/// Refuses `outputs` (each with the option that names it) that are the same file as one of `inputs`
-/// or as each other. Paths are compared resolved, so `./a.mha`, `dir/../a.mha` and a symbolic link to
-/// it are one file; an output that does not exist yet is resolved through its folder.
-pub fn refuse_overwriting_inputs(
-    inputs: &[PathBuf],
-    outputs: &[(String, PathBuf)],
-) -> anyhow::Result<()> {
+use echosurf::io::mesh_io::MESH_EXTENSIONS;
+
+/// What an output file holds, which fixes the extensions its name may end in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Holds {
+    /// A triangle mesh: PLY, STL or OBJ, chosen by the extension.
+    Mesh,
+    /// A PNG picture.
+    Png,
+    /// A PLUS MetaImage sequence or volume.
+    MetaImage,
+    /// A PLY point cloud.
+    PointCloud,
+    /// JSON, a model: whatever the name.
+    AnyName,
+}
+
+impl Holds {
+    fn extensions(self) -> &'static [&'static str] {
+        match self {
+            Holds::Mesh => &MESH_EXTENSIONS,
+            Holds::Png => &["png"],
+            Holds::MetaImage => &["mha"],
+            Holds::PointCloud => &["ply"],
+            Holds::AnyName => &[],
+        }
+    }
+
+    fn description(self) -> &'static str {
+        match self {
+            Holds::Mesh => "a mesh is written as PLY, STL or OBJ by the extension",
+            Holds::Png => "the picture is written as PNG",
+            Holds::MetaImage => "this is written as a MetaImage file with its data inside",
+            Holds::PointCloud => "the point cloud is written as PLY",
+            Holds::AnyName => "",
+        }
+    }
+}
+
+/// One file a command will write.
+#[derive(Debug, Clone)]
+pub struct Output {
+    /// The option that names it, as the user typed it (`--out`, `--preview`).
+    pub option: String,
+    pub path: PathBuf,
+    pub holds: Holds,
+}
+
+/// An output file, the option that names it and what it holds.
+pub fn output(option: impl Into<String>, path: &Path, holds: Holds) -> Output {
+    Output {
+        option: option.into(),
+        path: path.to_path_buf(),
+        holds,
+    }
+}
+
+/// Refuses an output that is the same file as one of `inputs` or as another output, or whose name
+/// does not end in an extension of what it holds. Paths are compared resolved, so
+/// `./a.mha`, `dir/../a.mha` and a symbolic link to it are one file; an output that does not exist yet
+/// is resolved through its folder.
+pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<()> {
     let inputs: Vec<(PathBuf, &PathBuf)> = inputs.iter().map(|p| (resolved(p), p)).collect();
     let mut seen: Vec<(PathBuf, &str)> = Vec::with_capacity(outputs.len());
-    for (option, output) in outputs {
-        let target = resolved(output);
+    for Output {
+        option,
+        path,
+        holds,
+    } in outputs
+    {
+        let target = resolved(path);
         if let Some((_, input)) = inputs.iter().find(|(p, _)| *p == target) {
             anyhow::bail!(
                 "{option} {}: that is {}, an input of this run; echosurf does not write over what it \
                  reads, so name another output file",
-                output.display(),
+                path.display(),
                 input.display()
             );
         }
         if let Some((_, earlier)) = seen.iter().find(|(p, _)| *p == target) {
             anyhow::bail!(
                 "{earlier} and {option} both name {}; each output needs a file of its own",
-                output.display()
+                path.display()
+            );
+        }
+        let extensions = holds.extensions();
+        let extension = path
+            .extension()
+            .map(|e| e.to_string_lossy().to_ascii_lowercase());
+        if !extensions.is_empty() && !extension.is_some_and(|e| extensions.contains(&e.as_str())) {
+            let listed: Vec<String> = extensions.iter().map(|e| format!(".{e}")).collect();
+            anyhow::bail!(
+                "{option} {}: {}, so the file name must end in {}",
+                path.display(),
+                holds.description(),
+                listed.join(", ")
             );
         }
         seen.push((target, option));
     }
     Ok(())
-}
-
-/// An output file and the option that names it, as [`refuse_overwriting_inputs`] takes them.
-pub fn output(option: impl Into<String>, path: &Path) -> (String, PathBuf) {
-    (option.into(), path.to_path_buf())
 }
 
 /// The path with links and `.`/`..` resolved; for a file not there yet, its folder's resolved path
@@ -62,7 +132,7 @@ fn resolved(path: &Path) -> PathBuf {
 
 #[cfg(test)]
 mod tests {
-    use super::{output, refuse_overwriting_inputs};
+    use super::{Holds, check_outputs, output};
     use std::path::{Path, PathBuf};
 
     #[test]
@@ -73,7 +143,7 @@ mod tests {
         std::fs::create_dir(dir.path().join("sub")).unwrap();
         let inputs = vec![input.clone()];
         let roundabout = dir.path().join("sub").join("..").join("sweep.mha");
-        let err = refuse_overwriting_inputs(&inputs, &[output("--out", &roundabout)])
+        let err = check_outputs(&inputs, &[output("--out", &roundabout, Holds::MetaImage)])
             .unwrap_err()
             .to_string();
         assert!(
@@ -84,31 +154,54 @@ mod tests {
         {
             let link = dir.path().join("link.mha");
             std::os::unix::fs::symlink(&input, &link).unwrap();
-            assert!(refuse_overwriting_inputs(&inputs, &[output("--out", &link)]).is_err());
+            assert!(check_outputs(&inputs, &[output("--out", &link, Holds::MetaImage)]).is_err());
         }
 
         let mesh = dir.path().join("mesh.ply");
         let same_mesh = dir.path().join("sub").join("..").join("mesh.ply");
-        let err = refuse_overwriting_inputs(
+        let report = dir.path().join("report.json");
+        let err = check_outputs(
             &inputs,
-            &[output("--out", &mesh), output("--preview", &same_mesh)],
+            &[
+                output("--out", &mesh, Holds::Mesh),
+                output("--report", &report, Holds::AnyName),
+                output("--samples", &same_mesh, Holds::PointCloud),
+            ],
         )
         .unwrap_err()
         .to_string();
-        assert!(err.starts_with("--out and --preview both name"), "{err}");
+        assert!(err.starts_with("--out and --samples both name"), "{err}");
 
         let preview = dir.path().join("mesh.png");
-        refuse_overwriting_inputs(
-            &inputs,
-            &[output("--out", &mesh), output("--preview", &preview)],
-        )
-        .unwrap();
+        let outputs = [
+            output("--out", &mesh, Holds::Mesh),
+            output("--preview", &preview, Holds::Png),
+        ];
+        check_outputs(&inputs, &outputs).unwrap();
         // A relative output with no folder part is resolved in the working folder.
-        refuse_overwriting_inputs(&inputs, &[output("--out", Path::new("mesh.ply"))]).unwrap();
-        refuse_overwriting_inputs(
-            &[PathBuf::from("/nonexistent/a.mha")],
-            &[output("--out", &mesh)],
-        )
-        .unwrap();
+        check_outputs(&inputs, &[output("--out", Path::new("m.ply"), Holds::Mesh)]).unwrap();
+        let gone = [PathBuf::from("/nonexistent/a.mha")];
+        check_outputs(&gone, &[output("--out", &mesh, Holds::Mesh)]).unwrap();
+    }
+
+    #[test]
+    fn an_output_named_for_another_format_is_refused() {
+        let refused = |name: &str, holds: Holds| {
+            let outputs = [output("--out", Path::new(name), holds)];
+            check_outputs(&[], &outputs).map_err(|e| e.to_string())
+        };
+        for name in ["m.ply", "m.STL", "m.obj"] {
+            assert!(refused(name, Holds::Mesh).is_ok(), "{name}");
+        }
+        let err = refused("m.xyz", Holds::Mesh).unwrap_err();
+        assert!(err.ends_with("must end in .ply, .stl, .obj"), "{err}");
+        assert!(refused("mesh", Holds::Mesh).is_err());
+        assert!(refused("view.jpg", Holds::Png).unwrap_err().contains("PNG"));
+        assert!(refused("view.PNG", Holds::Png).is_ok());
+        assert!(refused("masks.png", Holds::MetaImage).is_err());
+        assert!(refused("masks.seq.mha", Holds::MetaImage).is_ok());
+        assert!(refused("points.stl", Holds::PointCloud).is_err());
+        assert!(refused("report.txt", Holds::AnyName).is_ok());
+        assert!(refused("model", Holds::AnyName).is_ok());
     }
 }

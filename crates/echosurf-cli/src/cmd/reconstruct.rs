@@ -12,7 +12,7 @@ use echosurf::voxel::{
 };
 use glam::DVec3;
 
-use super::outputs::{output, refuse_overwriting_inputs};
+use super::outputs::{Holds, check_outputs, output};
 
 use crate::progress::BarProgress;
 
@@ -74,7 +74,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut inputs = echosurf::io::sequence_files(&args.sequence);
     inputs.push(args.config.clone());
-    refuse_overwriting_inputs(&inputs, &[output("--out", &args.out)])?;
+    check_outputs(&inputs, &[output("--out", &args.out, Holds::MetaImage)])?;
     let started = Instant::now();
     let sequence = read_sequence(&args.sequence)?;
     let calibration = read_calibration(&args.config)?;

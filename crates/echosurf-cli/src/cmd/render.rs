@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use echosurf::render::{Projection, RenderOptions, render_views, write_png};
 
-use super::outputs::{output, refuse_overwriting_inputs};
+use super::outputs::{Holds, check_outputs, output};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -27,7 +27,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut inputs = vec![args.mesh.clone()];
     inputs.extend(args.ghost.iter().cloned());
-    refuse_overwriting_inputs(&inputs, &[output("--out", &args.out)])?;
+    check_outputs(&inputs, &[output("--out", &args.out, Holds::Png)])?;
     let mesh = echosurf::io::read_mesh(&args.mesh)?;
     let ghost = match &args.ghost {
         Some(path) => Some(echosurf::io::read_mesh(path)?),

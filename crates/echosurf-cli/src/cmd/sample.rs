@@ -10,7 +10,7 @@ use echosurf::resources::StageMeter;
 use echosurf::segment::InitialBand;
 
 use super::extract::{echo_margin, world_choice};
-use super::outputs::{output, refuse_overwriting_inputs};
+use super::outputs::{Holds, check_outputs, output};
 use super::segment::SegmentArgs;
 use crate::progress::BarProgress;
 
@@ -37,7 +37,10 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let seg = &args.segment;
-    refuse_overwriting_inputs(&seg.input_files(), &[output("--out", &args.out)])?;
+    check_outputs(
+        &seg.input_files(),
+        &[output("--out", &args.out, Holds::PointCloud)],
+    )?;
     if !(args.sample_bin.is_finite() && args.sample_bin >= 0.0) {
         anyhow::bail!("--sample-bin must be a size in mm >= 0");
     }

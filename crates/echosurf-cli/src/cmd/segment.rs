@@ -9,7 +9,7 @@ use echosurf::segment::{
     write_band_preview,
 };
 
-use super::outputs::{output, refuse_overwriting_inputs};
+use super::outputs::{Holds, check_outputs, output};
 use crate::progress::BarProgress;
 
 /// Options shared by `segment` and `sample`: the sequence, its calibration, the initial band and the
@@ -178,9 +178,13 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut outputs = vec![output("--out", &args.out)];
-    outputs.extend(args.preview.as_deref().map(|p| output("--preview", p)));
-    refuse_overwriting_inputs(&args.segment.input_files(), &outputs)?;
+    let mut outputs = vec![output("--out", &args.out, Holds::MetaImage)];
+    outputs.extend(
+        args.preview
+            .as_deref()
+            .map(|p| output("--preview", p, Holds::Png)),
+    );
+    check_outputs(&args.segment.input_files(), &outputs)?;
     let (sequence, poses, masks) = args.segment.run()?;
     io::write_sequence(&args.out, &masks.to_sequence(), true)?;
     if let Some(path) = &args.preview {

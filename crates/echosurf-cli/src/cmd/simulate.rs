@@ -7,6 +7,8 @@ use echosurf::simulate::{
     PhantomKind, SimulationOptions, simulate, write_preview, write_simulation,
 };
 
+use super::outputs::{Holds, check_outputs, output};
+
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// sphere | ellipsoid | torus | duck | hand | PATH to a closed STL/PLY/OBJ mesh (mm).
@@ -152,6 +154,9 @@ fn options_from(args: &Args) -> SimulationOptions {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if let Some(path) = &args.preview {
+        check_outputs(&[], &[output("--preview", path, Holds::Png)])?;
+    }
     let options = options_from(&args);
     let work = || -> anyhow::Result<()> {
         let progress = crate::progress::BarProgress::new();

@@ -10,7 +10,7 @@ use echosurf::rbf::RbfModel;
 use echosurf::surface::{SurfaceOptions, extract_surfaces_with_stats};
 
 use super::extract::{mesh_outputs, mesh_path, parse_iso};
-use super::outputs::refuse_overwriting_inputs;
+use super::outputs::check_outputs;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -38,7 +38,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ),
     };
     let outputs = mesh_outputs(&args.out, &IsoLevels::Levels(levels.clone()));
-    refuse_overwriting_inputs(std::slice::from_ref(&args.model), &outputs)?;
+    check_outputs(std::slice::from_ref(&args.model), &outputs)?;
     let model = RbfModel::load(&args.model)?;
     let centres = model.centres().to_vec();
     if centres.is_empty() {

@@ -23,6 +23,9 @@ enum MeshFormat {
     Obj,
 }
 
+/// The file name extensions a mesh is read from and written to (case-insensitive).
+pub const MESH_EXTENSIONS: [&str; 3] = ["ply", "stl", "obj"];
+
 fn format_of(path: &Path) -> Option<MeshFormat> {
     let ext = path.extension()?.to_string_lossy().to_ascii_lowercase();
     match ext.as_str() {
@@ -625,6 +628,16 @@ mod tests {
             normals: m.normals.iter().map(|n| r(n).normalize()).collect(),
             triangles: m.triangles.clone(),
         }
+    }
+
+    #[test]
+    fn the_listed_extensions_are_the_formats_read_and_written() {
+        for ext in MESH_EXTENSIONS {
+            assert!(format_of(Path::new(&format!("m.{ext}"))).is_some(), "{ext}");
+            assert!(format_of(Path::new(&format!("m.{}", ext.to_uppercase()))).is_some());
+        }
+        assert!(format_of(Path::new("m.xyz")).is_none());
+        assert!(format_of(Path::new("ply")).is_none());
     }
 
     #[test]
