@@ -13,7 +13,7 @@ use real_data::real;
 
 const NWIRE_CONFIG: &str = "PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml";
 
-fn extract_real(sequence: &str, config: &str) -> pipeline::ExtractOutput {
+fn try_extract_real(sequence: &str, config: &str) -> echosurf::Result<pipeline::ExtractOutput> {
     let sequence = read_sequence(&real(sequence)).unwrap();
     let calibration = read_calibration(&real(config)).unwrap();
     pipeline::extract(
@@ -22,7 +22,46 @@ fn extract_real(sequence: &str, config: &str) -> pipeline::ExtractOutput {
         &ExtractOptions::default(),
         &NoProgress,
     )
-    .unwrap()
+}
+
+fn extract_real(sequence: &str, config: &str) -> pipeline::ExtractOutput {
+    try_extract_real(sequence, config).unwrap()
+}
+
+#[test]
+fn a_recording_whose_probe_never_moves_is_refused() {
+    // The Prostate video's 9 placed frames share one pose (tracking was not recorded with it): with any
+    // calibration they lie in one plane. Before the check, extract drew 2,362 triangles from them.
+    let err = try_extract_real("Prostate10_video.igs.mhd", NWIRE_CONFIG)
+        .err()
+        .expect("one plane of frames is no volume");
+    let message = err.to_string();
+    assert!(
+        matches!(err, echosurf::Error::InvalidInput(_))
+            && message.contains("within 0.00 mm of one plane"),
+        "{message}"
+    );
+    // Every real sweep spans far more than the threshold.
+    for (name, config) in [
+        (
+            "SpinePhantomFreehand.igs.mha",
+            "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml",
+        ),
+        ("NwirePhantomFreehand.igs.mha", NWIRE_CONFIG),
+    ] {
+        let sequence = read_sequence(&real(name)).unwrap();
+        let calibration = read_calibration(&real(config)).unwrap();
+        let poses = echosurf::io::resolve_poses(
+            &sequence,
+            Some(&calibration),
+            echosurf::io::ReferenceChoice::Auto,
+            &real(name),
+        )
+        .unwrap();
+        let span = pipeline::sweep_span_mm(sequence.width, sequence.height, &poses.poses).unwrap();
+        eprintln!("{name}: the frames reach {span:.1} mm off the first frame's plane");
+        assert!(span > 10.0 * pipeline::MIN_SWEEP_SPAN_MM, "{name}: {span}");
+    }
 }
 
 #[test]

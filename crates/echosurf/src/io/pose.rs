@@ -261,8 +261,13 @@ pub fn image_centre(sequence: &TrackedSequence, pose: &FramePose) -> DVec3 {
 
 /// World positions of the four corner pixels (0,0), (W-1,0), (0,H-1), (W-1,H-1) of a frame.
 pub fn frame_corners(sequence: &TrackedSequence, pose: &FramePose) -> [DVec3; 4] {
-    let u = sequence.width.saturating_sub(1) as f64;
-    let v = sequence.height.saturating_sub(1) as f64;
+    image_corners(sequence.width, sequence.height, pose)
+}
+
+/// [`frame_corners`] for a `width` x `height` image.
+pub fn image_corners(width: usize, height: usize, pose: &FramePose) -> [DVec3; 4] {
+    let u = width.saturating_sub(1) as f64;
+    let v = height.saturating_sub(1) as f64;
     [(0.0, 0.0), (u, 0.0), (0.0, v), (u, v)]
         .map(|(x, y)| pose.image_to_world.transform_point3(DVec3::new(x, y, 0.0)))
 }
