@@ -32,9 +32,9 @@ fn extract_real(sequence: &str, config: &str) -> pipeline::ExtractOutput {
 fn a_recording_whose_probe_never_moves_is_refused() {
     // The Prostate video's 9 placed frames share one pose (tracking was not recorded with it): with any
     // calibration they lie in one plane. Before the check, extract drew 2,362 triangles from them.
-    let err = try_extract_real("Prostate10_video.igs.mhd", NWIRE_CONFIG)
-        .err()
-        .expect("one plane of frames is no volume");
+    let Err(err) = try_extract_real("Prostate10_video.igs.mhd", NWIRE_CONFIG) else {
+        panic!("one plane of frames is no volume, yet a surface came out");
+    };
     let message = err.to_string();
     assert!(
         matches!(err, echosurf::Error::InvalidInput(_))
