@@ -142,6 +142,12 @@ pub fn parse_iso(text: &str) -> anyhow::Result<IsoLevels> {
                 })
         })
         .collect::<anyhow::Result<Vec<f64>>>()?;
+    // Each level's mesh is named after it: a level listed twice would be written twice to one file.
+    for (k, level) in levels.iter().enumerate() {
+        if levels[..k].contains(level) {
+            anyhow::bail!("--iso lists the level {} twice", format_level(*level));
+        }
+    }
     Ok(IsoLevels::Levels(levels))
 }
 
@@ -557,4 +563,23 @@ pub(crate) fn echo_margin(mm: f64) -> anyhow::Result<Option<f64>> {
         );
     }
     Ok((mm > 0.0).then_some(mm))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{IsoLevels, parse_iso};
+
+    #[test]
+    fn iso_levels_are_auto_or_distinct_finite_numbers() {
+        assert!(matches!(parse_iso(" AUTO ").unwrap(), IsoLevels::Auto));
+        match parse_iso("40, 60.5").unwrap() {
+            IsoLevels::Levels(levels) => assert_eq!(levels, vec![40.0, 60.5]),
+            IsoLevels::Auto => panic!("numbers read as auto"),
+        }
+        let refused = |text: &str| parse_iso(text).unwrap_err().to_string();
+        assert!(refused("40,x").contains("`x` is not a number"));
+        assert!(refused("nan").contains("not a number"));
+        assert!(refused("").contains("not a number"));
+        assert_eq!(refused("40,60,40.0"), "--iso lists the level 40 twice");
+    }
 }
