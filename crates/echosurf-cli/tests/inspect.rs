@@ -105,6 +105,34 @@ fn every_real_sequence_is_summarised() {
 }
 
 #[test]
+fn a_clip_rectangle_beyond_the_frames_is_pointed_out() {
+    let nwire_config =
+        path_arg("PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml");
+    let clip_line = |sequence: &str| {
+        let out = inspect(&[&path_arg(sequence), "--config", &nwire_config]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        text.lines()
+            .find(|l| l.trim_start().starts_with("clip "))
+            .unwrap()
+            .to_string()
+    };
+    // The N-wire calibration's clip (167 62, 495 x 488) fits its own 820 x 616 frames, not the
+    // Prostate video's 640 x 480.
+    let own = clip_line("NwirePhantomFreehand.igs.mha");
+    assert!(!own.contains("beyond"), "{own}");
+    let other = clip_line("Prostate10_video.igs.mhd");
+    assert!(
+        other.contains("reaches beyond the 640 x 480 px frames"),
+        "{other}"
+    );
+}
+
+#[test]
 fn bad_inputs_exit_non_zero_naming_the_file() {
     let dir = tempfile::tempdir().unwrap();
     // All frames INVALID.

@@ -182,6 +182,21 @@ impl ClipRect {
             && u < self.origin_px[0] + self.size_px[0]
             && v < self.origin_px[1] + self.size_px[1]
     }
+
+    /// Whether the rectangle lies within a `width` x `height` image. One that reaches beyond it is cut
+    /// to the image (as PLUS does), but usually means the calibration was made for another image size.
+    pub fn fits(&self, width: usize, height: usize) -> bool {
+        self.origin_px[0].saturating_add(self.size_px[0]) <= width
+            && self.origin_px[1].saturating_add(self.size_px[1]) <= height
+    }
+
+    /// `origin U V, size W x H px`, as the calibration gives it.
+    pub fn describe(&self) -> String {
+        format!(
+            "origin {} {}, size {} x {} px",
+            self.origin_px[0], self.origin_px[1], self.size_px[0], self.size_px[1]
+        )
+    }
 }
 
 /// A probe calibration and the other settings of a PLUS device-set file that echosurf uses.

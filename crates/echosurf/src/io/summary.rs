@@ -324,11 +324,16 @@ impl SequenceSummary {
             }
         }
         if let Some(c) = self.clip {
-            let _ = writeln!(
-                s,
-                "  clip        origin {} {}, size {} x {} px",
-                c.origin_px[0], c.origin_px[1], c.size_px[0], c.size_px[1]
-            );
+            let beyond = if c.fits(self.width, self.height) {
+                String::new()
+            } else {
+                format!(
+                    " (reaches beyond the {} x {} px frames: cut to them; a calibration for another \
+                     image size?)",
+                    self.width, self.height
+                )
+            };
+            let _ = writeln!(s, "  clip        {}{beyond}", c.describe());
         }
         let what = match self.tracked_point {
             TrackedPoint::ImageCentre => "image centre",

@@ -394,6 +394,21 @@ fn pixel_size_of(image_to_world: &DMat4) -> f64 {
 }
 
 /// The clip rectangle intersected with the frame; `None` if it leaves nothing.
+/// A clip rectangle that reaches beyond the frames is cut to them, and said so: it usually means a
+/// calibration made for another image size, whose pixel size and origin are then wrong too.
+fn clip_beyond_frame_warning(
+    clip: Option<ClipRect>,
+    width: usize,
+    height: usize,
+) -> Option<String> {
+    let clip = clip.filter(|c| !c.fits(width, height))?;
+    Some(format!(
+        "the clip rectangle ({}) reaches beyond the {width} x {height} px frames and is cut to them: \
+         is the calibration for this image size?",
+        clip.describe()
+    ))
+}
+
 fn effective_clip(clip: Option<ClipRect>, width: usize, height: usize) -> Option<ClipRect> {
     let c = clip.unwrap_or(ClipRect {
         origin_px: [0, 0],
@@ -604,6 +619,7 @@ pub fn segment_sequence(
         .first()
         .map(|p| pixel_size_of(&p.image_to_world));
     let px_size = pixel_size_for_lengths(options, poses, pixel_size_mm)?;
+    let given_clip = clip;
     let mut clip = effective_clip(clip, width, height);
     if options.detect_data_region
         && let Some(c) = clip
@@ -654,7 +670,9 @@ pub fn segment_sequence(
         prior: Vec::new(),
         band: Vec::new(),
         masks,
-        warnings: Vec::new(),
+        warnings: clip_beyond_frame_warning(given_clip, width, height)
+            .into_iter()
+            .collect(),
         initialised_frames: Vec::new(),
     };
     let sweeps = crate::io::split_sweeps(sequence, poses);

@@ -242,6 +242,48 @@ fn clip_rectangle_and_invalid_frames_give_zero_pixels() {
     let seq = masks.to_sequence();
     assert_eq!((seq.width, seq.height, seq.frames.len()), (160, 120, 4));
     assert_eq!(seq.pixels.len(), 160 * 120 * 4);
+    assert!(masks.warnings.is_empty(), "{:?}", masks.warnings);
+
+    // A rectangle reaching past the frame (a calibration for a larger image) is cut to the frame, and
+    // said so once, before any per-frame warning.
+    let too_wide = ClipRect {
+        origin_px: [20, 10],
+        size_px: [400, 90],
+    };
+    let cut = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        Some(too_wide),
+        &InitialBand::Auto,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    let warned = cut
+        .warnings
+        .iter()
+        .filter(|w| w.contains("clip rectangle"))
+        .count();
+    assert_eq!(warned, 1, "{:?}", cut.warnings);
+    assert!(
+        cut.warnings[0].contains("origin 20 10, size 400 x 90 px")
+            && cut.warnings[0].contains("160 x 120")
+    );
+    let same_as_fitting = ClipRect {
+        origin_px: [20, 10],
+        size_px: [140, 90],
+    };
+    let fitting = segment_sequence(
+        &s.sequence,
+        &s.poses,
+        Some(same_as_fitting),
+        &InitialBand::Auto,
+        &SegmentOptions::default(),
+        &NoProgress,
+    )
+    .unwrap();
+    assert!(fitting.warnings.is_empty(), "{:?}", fitting.warnings);
+    assert_eq!(cut.masks, fitting.masks);
 }
 
 #[test]
