@@ -1,8 +1,8 @@
 //! Checks on where a command writes, made before any work, so a mistake costs no minutes of
 //! computing and destroys nothing: an output never replaces one of the run's inputs (`segment
 //! sweep.mha --out sweep.mha` would otherwise destroy the recording), no two outputs of one run share
-//! a file (the later would silently replace the earlier), and each output's name ends in the extension
-//! of what is written into it (a PNG picture is not written into `view.jpg`).
+//! a file (the later would silently replace the earlier), each output's name ends in the extension of
+//! what is written into it (a PNG picture is not written into `view.jpg`), and its folder exists.
 
 use std::path::{Path, PathBuf};
 
@@ -63,8 +63,8 @@ pub fn output(option: impl Into<String>, path: &Path, holds: Holds) -> Output {
     }
 }
 
-/// Refuses an output that is the same file as one of `inputs` or as another output, or whose name
-/// does not end in an extension of what it holds. Paths are compared resolved, so
+/// Refuses an output that is the same file as one of `inputs` or as another output, whose name does
+/// not end in an extension of what it holds, that is a folder, or whose folder does not exist. Paths are compared resolved, so
 /// `./a.mha`, `dir/../a.mha` and a symbolic link to it are one file; an output that does not exist yet
 /// is resolved through its folder.
 pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<()> {
@@ -102,6 +102,20 @@ pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<(
                 path.display(),
                 holds.description(),
                 listed.join(", ")
+            );
+        }
+        if path.is_dir() {
+            anyhow::bail!("{option} {}: that is a folder; name a file", path.display());
+        }
+        let folder = match path.parent() {
+            Some(dir) if !dir.as_os_str().is_empty() => dir,
+            _ => Path::new("."),
+        };
+        if !folder.is_dir() {
+            anyhow::bail!(
+                "{option} {}: the folder {} does not exist (echosurf does not create it)",
+                path.display(),
+                folder.display()
             );
         }
         seen.push((target, option));
@@ -178,6 +192,17 @@ mod tests {
             output("--preview", &preview, Holds::Png),
         ];
         check_outputs(&inputs, &outputs).unwrap();
+        let folder_named_ply = dir.path().join("folder.ply");
+        std::fs::create_dir(&folder_named_ply).unwrap();
+        let err = check_outputs(&inputs, &[output("--out", &folder_named_ply, Holds::Mesh)])
+            .unwrap_err()
+            .to_string();
+        assert!(err.ends_with("that is a folder; name a file"), "{err}");
+        let nowhere = dir.path().join("missing").join("mesh.ply");
+        let err = check_outputs(&inputs, &[output("--out", &nowhere, Holds::Mesh)])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("missing does not exist"), "{err}");
         // A relative output with no folder part is resolved in the working folder.
         check_outputs(&inputs, &[output("--out", Path::new("m.ply"), Holds::Mesh)]).unwrap();
         let gone = [PathBuf::from("/nonexistent/a.mha")];
