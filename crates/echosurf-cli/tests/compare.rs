@@ -115,8 +115,16 @@ fn compare_sequence_options_fail_cleanly() {
     let missing = dir.path().join("missing.mha");
     let err = run(&["--sequence", missing.to_str().unwrap()]);
     assert!(err.contains("missing.mha"), "{err}");
-    let err = run(&["--config", "x.xml"]);
-    assert!(err.contains("--sequence"), "{err}");
+    // The options of the swept-truth score mean nothing without the sequence: not silently ignored.
+    for extra in [
+        ["--config", "x.xml"],
+        ["--facing", "probe"],
+        ["--facing-deg", "20"],
+        ["--world", "tracker"],
+    ] {
+        let err = run(&extra);
+        assert!(err.contains("--sequence"), "{extra:?}: {err}");
+    }
     let spine = real("SpinePhantomFreehand.igs.mha");
     let config = real("PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml");
     let on_spine = |extra: &[&str]| {

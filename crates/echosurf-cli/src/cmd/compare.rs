@@ -53,13 +53,13 @@ pub struct Args {
     #[arg(long, requires = "sequence")]
     pub config: Option<PathBuf>,
     /// World frame of the sequence's poses, as in `extract`: auto, tracker or reference.
-    #[arg(long, default_value = "auto")]
+    #[arg(long, requires = "sequence", default_value = "auto")]
     pub world: String,
     /// With --sequence: largest angle between the truth's normal and a sweeping frame's beam (degrees).
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, requires = "sequence", default_value_t = 30.0)]
     pub facing_deg: f64,
     /// With --sequence: which side of a wall must face the beam.
-    #[arg(long, value_enum, default_value = "either")]
+    #[arg(long, requires = "sequence", value_enum, default_value = "either")]
     pub facing: FacingArg,
 }
 
