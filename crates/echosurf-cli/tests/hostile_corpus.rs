@@ -246,7 +246,18 @@ fn outputs_never_replace_inputs_or_each_other() {
     let raw = copy("Prostate10_video.raw");
     let inputs = [&nwire, &config, &video, &raw];
     let before: Vec<Vec<u8>> = inputs.iter().map(|p| std::fs::read(p).unwrap()).collect();
-    let refused = |args: Vec<PathBuf>, says: &str| {
+    let p = PathBuf::from;
+    let in_dir = |name: &str| dir.path().join(name);
+    std::fs::create_dir(in_dir("sub")).unwrap();
+    // `echosurf COMMAND SEQUENCE --config CONFIG REST...` must fail, saying `says`, quickly.
+    let refused = |command: &str, sequence: &Path, rest: &[PathBuf], says: &str| {
+        let mut args = vec![
+            PathBuf::from(command),
+            sequence.to_path_buf(),
+            p("--config"),
+            config.clone(),
+        ];
+        args.extend_from_slice(rest);
         let start = Instant::now();
         let out = Command::new(BIN).args(&args).output().unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
@@ -256,98 +267,46 @@ fn outputs_never_replace_inputs_or_each_other() {
         let seconds = start.elapsed().as_secs_f64();
         assert!(seconds < MAX_SECONDS, "{args:?} took {seconds} s to refuse");
     };
-    let p = PathBuf::from;
-    let in_dir = |name: &str| dir.path().join(name);
-    std::fs::create_dir(in_dir("sub")).unwrap();
+    let out_to = |path: PathBuf| [p("--out"), path];
     // The masks would have replaced the recording.
+    let roundabout = in_dir("sub/../NwirePhantomFreehand.igs.mha");
+    let auto_out = [p("--auto-init"), p("--out"), roundabout];
+    refused("segment", &nwire, &auto_out, "that is");
+    // A detached data file is an input too; so is the calibration.
     refused(
-        vec![
-            p("segment"),
-            nwire.clone(),
-            p("--config"),
-            config.clone(),
-            p("--auto-init"),
-            p("--out"),
-            in_dir("sub/../NwirePhantomFreehand.igs.mha"),
-        ],
-        "that is",
-    );
-    // A detached data file is an input too.
-    refused(
-        vec![
-            p("extract"),
-            video.clone(),
-            p("--config"),
-            config.clone(),
-            p("--out"),
-            raw.clone(),
-        ],
+        "extract",
+        &video,
+        &out_to(raw.clone()),
         "an input of this run",
     );
-    refused(
-        vec![
-            p("reconstruct"),
-            nwire.clone(),
-            p("--config"),
-            config.clone(),
-            p("--out"),
-            config.clone(),
-        ],
-        "--out",
-    );
+    refused("reconstruct", &nwire, &out_to(config.clone()), "--out");
     // Two outputs of one run in one file, also through a level's derived name.
+    let twice = [
+        p("--out"),
+        in_dir("mesh.ply"),
+        p("--preview"),
+        in_dir("mesh.ply"),
+    ];
+    refused("extract", &nwire, &twice, "--out and --preview both name");
+    let derived = [
+        p("--iso"),
+        p("40,60"),
+        p("--out"),
+        in_dir("mesh.ply"),
+        p("--report"),
+        in_dir("mesh_iso60.ply"),
+    ];
     refused(
-        vec![
-            p("extract"),
-            nwire.clone(),
-            p("--config"),
-            config.clone(),
-            p("--out"),
-            in_dir("mesh.ply"),
-            p("--preview"),
-            in_dir("mesh.ply"),
-        ],
-        "--out and --preview both name",
-    );
-    refused(
-        vec![
-            p("extract"),
-            nwire.clone(),
-            p("--config"),
-            config.clone(),
-            p("--iso"),
-            p("40,60"),
-            p("--out"),
-            in_dir("mesh.ply"),
-            p("--report"),
-            in_dir("mesh_iso60.ply"),
-        ],
+        "extract",
+        &nwire,
+        &derived,
         "--out (iso 60) and --report both name",
     );
     // An output named for another format, refused before the work rather than after it.
-    refused(
-        vec![
-            p("segment"),
-            nwire.clone(),
-            p("--config"),
-            config.clone(),
-            p("--auto-init"),
-            p("--out"),
-            in_dir("masks.png"),
-        ],
-        "must end in .mha",
-    );
-    refused(
-        vec![
-            p("extract"),
-            nwire.clone(),
-            p("--config"),
-            config.clone(),
-            p("--out"),
-            in_dir("mesh.xyz"),
-        ],
-        "must end in .ply, .stl, .obj",
-    );
+    let masks_png = [p("--auto-init"), p("--out"), in_dir("masks.png")];
+    refused("segment", &nwire, &masks_png, "must end in .mha");
+    let xyz = out_to(in_dir("mesh.xyz"));
+    refused("extract", &nwire, &xyz, "must end in .ply, .stl, .obj");
     for (path, bytes) in inputs.iter().zip(&before) {
         assert_eq!(
             &std::fs::read(path).unwrap(),

@@ -107,10 +107,7 @@ pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<(
         if path.is_dir() {
             anyhow::bail!("{option} {}: that is a folder; name a file", path.display());
         }
-        let folder = match path.parent() {
-            Some(dir) if !dir.as_os_str().is_empty() => dir,
-            _ => Path::new("."),
-        };
+        let folder = folder_of(path);
         if !folder.is_dir() {
             anyhow::bail!(
                 "{option} {}: the folder {} does not exist (echosurf does not create it)",
@@ -129,18 +126,20 @@ fn resolved(path: &Path) -> PathBuf {
     if let Ok(full) = path.canonicalize() {
         return full;
     }
-    match (path.parent(), path.file_name()) {
-        (Some(dir), Some(name)) => {
-            let dir = if dir.as_os_str().is_empty() {
-                Path::new(".")
-            } else {
-                dir
-            };
-            dir.canonicalize()
-                .map(|d| d.join(name))
-                .unwrap_or_else(|_| path.to_path_buf())
-        }
-        _ => path.to_path_buf(),
+    match path.file_name() {
+        Some(name) => folder_of(path)
+            .canonicalize()
+            .map(|d| d.join(name))
+            .unwrap_or_else(|_| path.to_path_buf()),
+        None => path.to_path_buf(),
+    }
+}
+
+/// The folder a file goes in: its parent, or the working folder for a bare name.
+fn folder_of(path: &Path) -> &Path {
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir,
+        _ => Path::new("."),
     }
 }
 

@@ -210,19 +210,19 @@ fn clip_rectangle_and_invalid_frames_give_zero_pixels() {
     let mut s = synthetic_sweep(160, 120, 4, 0.15, 0.0, 3);
     // Frame 2 has no pose.
     s.poses.poses.retain(|p| p.frame_index != 2);
-    let clip = ClipRect {
-        origin_px: [20, 10],
-        size_px: [100, 90],
+    let segment_within = |origin_px: [usize; 2], size_px: [usize; 2]| {
+        let clip = ClipRect { origin_px, size_px };
+        let masks = segment_sequence(
+            &s.sequence,
+            &s.poses,
+            Some(clip),
+            &InitialBand::Auto,
+            &SegmentOptions::default(),
+            &NoProgress,
+        );
+        (clip, masks.unwrap())
     };
-    let masks = segment_sequence(
-        &s.sequence,
-        &s.poses,
-        Some(clip),
-        &InitialBand::Auto,
-        &SegmentOptions::default(),
-        &NoProgress,
-    )
-    .unwrap();
+    let (clip, masks) = segment_within([20, 10], [100, 90]);
     assert!(masks.masks[2].iter().all(|&m| m == 0));
     for f in [0, 1, 3] {
         let m = &masks.masks[f];
@@ -246,19 +246,7 @@ fn clip_rectangle_and_invalid_frames_give_zero_pixels() {
 
     // A rectangle reaching past the frame (a calibration for a larger image) is cut to the frame, and
     // said so once, before any per-frame warning.
-    let too_wide = ClipRect {
-        origin_px: [20, 10],
-        size_px: [400, 90],
-    };
-    let cut = segment_sequence(
-        &s.sequence,
-        &s.poses,
-        Some(too_wide),
-        &InitialBand::Auto,
-        &SegmentOptions::default(),
-        &NoProgress,
-    )
-    .unwrap();
+    let (_, cut) = segment_within([20, 10], [400, 90]);
     let warned = cut
         .warnings
         .iter()
@@ -269,19 +257,7 @@ fn clip_rectangle_and_invalid_frames_give_zero_pixels() {
         cut.warnings[0].contains("origin 20 10, size 400 x 90 px")
             && cut.warnings[0].contains("160 x 120")
     );
-    let same_as_fitting = ClipRect {
-        origin_px: [20, 10],
-        size_px: [140, 90],
-    };
-    let fitting = segment_sequence(
-        &s.sequence,
-        &s.poses,
-        Some(same_as_fitting),
-        &InitialBand::Auto,
-        &SegmentOptions::default(),
-        &NoProgress,
-    )
-    .unwrap();
+    let (_, fitting) = segment_within([20, 10], [140, 90]);
     assert!(fitting.warnings.is_empty(), "{:?}", fitting.warnings);
     assert_eq!(cut.masks, fitting.masks);
 }
