@@ -59,6 +59,9 @@ fn json_has_the_documented_keys_and_the_spine_box() {
     assert_eq!(v["bounds_mm"]["max"].as_array().unwrap().len(), 3);
     let px = v["pixel_size_mm"].as_array().unwrap();
     assert!((px[0].as_f64().unwrap() - 0.085).abs() < 0.001);
+    // The frames' corners reach 32.9 mm off the first frame's plane (measured; the sweep is ~33 mm).
+    let span_mm = v["sweep_span_mm"].as_f64().unwrap();
+    assert!((span_mm - 32.9).abs() < 0.05, "{span_mm}");
 }
 
 #[test]
@@ -198,4 +201,30 @@ fn bad_inputs_exit_non_zero_naming_the_file() {
     let reason = std::fs::File::open(&nothing).unwrap_err().to_string();
     assert!(err.contains("nothing.mha"), "{err}");
     assert_eq!(err.matches(reason.as_str()).count(), 1, "{err}");
+}
+
+#[test]
+fn frames_in_one_plane_are_pointed_out() {
+    // The Prostate video's frames share one pose: whatever the calibration, they hold no volume.
+    let nwire_config =
+        path_arg("PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml");
+    let out = inspect(&[
+        &path_arg("Prostate10_video.igs.mhd"),
+        "--config",
+        &nwire_config,
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("span mm     0.0 off the first frame's plane"),
+        "{text}"
+    );
+    assert!(
+        text.contains("they hold no volume, and extract refuses them"),
+        "{text}"
+    );
 }

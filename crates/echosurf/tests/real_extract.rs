@@ -58,9 +58,13 @@ fn a_recording_whose_probe_never_moves_is_refused() {
             &real(name),
         )
         .unwrap();
-        let span = pipeline::sweep_span_mm(sequence.width, sequence.height, &poses.poses).unwrap();
+        let span =
+            echosurf::io::sweep_span_mm(sequence.width, sequence.height, &poses.poses).unwrap();
         eprintln!("{name}: the frames reach {span:.1} mm off the first frame's plane");
-        assert!(span > 10.0 * pipeline::MIN_SWEEP_SPAN_MM, "{name}: {span}");
+        assert!(
+            span > 10.0 * echosurf::io::MIN_SWEEP_SPAN_MM,
+            "{name}: {span}"
+        );
     }
 }
 

@@ -22,9 +22,10 @@ pub use mesh_io::{read_mesh, write_mesh};
 pub use plus_config::{read_calibration, write_calibration};
 pub use ply::{PointCloud, read_point_cloud, write_point_cloud};
 pub use pose::{
-    FramePose, PathStats, PoseResolution, ReferenceChoice, Sweep, clip_corners_px,
-    clipped_world_bounds, frame_corners, image_centre, needs_calibration, path_stats,
-    resolve_poses, split_path, split_sweeps, world_bounds, world_frame_for,
+    FramePose, MIN_SWEEP_SPAN_MM, PathStats, PoseResolution, ReferenceChoice, Sweep,
+    clip_corners_px, clipped_world_bounds, frame_corners, image_centre, needs_calibration,
+    path_stats, resolve_poses, split_path, split_sweeps, sweep_span_mm, world_bounds,
+    world_frame_for,
 };
 pub use sequence::{
     Calibration, ClipRect, ElementType, FrameTransform, PixelData, TrackedFrame, TrackedSequence,

@@ -6,8 +6,8 @@ use std::path::Path;
 use glam::{DMat4, DVec3};
 
 use super::pose::{
-    ReferenceChoice, clipped_world_bounds, image_centre, needs_calibration, path_stats,
-    resolve_poses, split_path, world_bounds,
+    MIN_SWEEP_SPAN_MM, ReferenceChoice, clipped_world_bounds, image_centre, needs_calibration,
+    path_stats, resolve_poses, split_path, sweep_span_mm, world_bounds,
 };
 use super::sequence::{Calibration, ClipRect, TrackedSequence};
 use crate::Result;
@@ -82,6 +82,9 @@ pub struct SequenceSummary {
     /// The same for the clip-rectangle corners (what PLUS sizes its reconstruction volume to), if the
     /// calibration has a clip rectangle.
     pub clip_bounds_mm: Option<BoundsMm>,
+    /// How far the frames reach off the first frame's plane ([`sweep_span_mm`]); `null` without a
+    /// calibration. Under [`MIN_SWEEP_SPAN_MM`] the frames hold no volume and `extract` refuses them.
+    pub sweep_span_mm: Option<f64>,
     /// Why something could not be reported, for the reader.
     pub notes: Vec<String>,
 }
@@ -167,6 +170,17 @@ pub fn summarise(
             max: arr(hi),
         })
     };
+    let sweep_span_mm = if probe_only {
+        None
+    } else {
+        sweep_span_mm(sequence.width, sequence.height, &resolution.poses)
+    };
+    if let Some(mm) = sweep_span_mm.filter(|&mm| mm < MIN_SWEEP_SPAN_MM) {
+        notes.push(format!(
+            "the frames lie within {mm:.2} mm of one plane: they hold no volume, and extract refuses \
+             them (the probe was not swept, or its poses do not change)"
+        ));
+    }
     let clip_bounds_mm = match (probe_only, calibration.and_then(|c| c.clip)) {
         (false, Some(clip)) => {
             clipped_world_bounds(sequence, &resolution.poses, &clip).map(|(lo, hi)| BoundsMm {
@@ -210,6 +224,7 @@ pub fn summarise(
         sweeps,
         bounds_mm,
         clip_bounds_mm,
+        sweep_span_mm,
         notes,
     })
 }
@@ -262,6 +277,7 @@ fn untracked_summary(
         sweeps: Vec::new(),
         bounds_mm: None,
         clip_bounds_mm: None,
+        sweep_span_mm: None,
         notes,
     }
 }
@@ -390,6 +406,9 @@ impl SequenceSummary {
                 size[1],
                 size[2]
             );
+        }
+        if let Some(mm) = self.sweep_span_mm {
+            let _ = writeln!(s, "  span mm     {mm:.1} off the first frame's plane");
         }
         for n in &self.notes {
             let _ = writeln!(s, "  note        {n}");

@@ -4,10 +4,8 @@
 
 use glam::{DMat4, DVec3};
 
-use crate::io::pose::{clip_corners_px, frame_corners, image_corners};
-use crate::io::{
-    Calibration, FramePose, PoseResolution, ReferenceChoice, TrackedSequence, resolve_poses,
-};
+use crate::io::pose::{MIN_SWEEP_SPAN_MM, clip_corners_px, frame_corners, sweep_span_mm};
+use crate::io::{Calibration, PoseResolution, ReferenceChoice, TrackedSequence, resolve_poses};
 use crate::mesh::Mesh;
 use crate::progress::Progress;
 use crate::rbf::{FitOptions, FitReport, RbfModel};
@@ -479,28 +477,6 @@ pub(crate) fn place_frames(
         )));
     }
     Ok(poses)
-}
-
-/// Frames all closer than this to one plane do not span a volume, and a fit through them is a
-/// sheet of guesses whose iso-surface means nothing: a video recorded without moving the probe, or
-/// with a pose that never changes (the PLUS `Prostate10_video` test file). Real sweeps span
-/// millimetres to centimetres; tracker jitter alone stays well under it.
-pub const MIN_SWEEP_SPAN_MM: f64 = 1.0;
-
-/// How far the corners of the frames reach from the first frame's plane (mm): the thickness of what
-/// the sweep covers, whether the probe slid (a linear sweep) or turned (a fan or a rotation about the
-/// beam, whose image centre may not move at all). `None` without frames or with a degenerate image.
-pub fn sweep_span_mm(width: usize, height: usize, poses: &[FramePose]) -> Option<f64> {
-    let corners = |p: &FramePose| image_corners(width, height, p);
-    let [origin, along_u, along_v, _] = corners(poses.first()?);
-    let normal = (along_u - origin).cross(along_v - origin).try_normalize()?;
-    Some(
-        poses
-            .iter()
-            .flat_map(corners)
-            .map(|c| (c - origin).dot(normal).abs())
-            .fold(0.0, f64::max),
-    )
 }
 
 /// Places the frames, segments the bands and turns kept pixels into (decimated) samples.
@@ -992,44 +968,6 @@ fn bounds(points: &[DVec3]) -> (DVec3, DVec3) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::DQuat;
-
-    fn posed(image_to_world: DMat4) -> FramePose {
-        FramePose {
-            frame_index: 0,
-            image_to_world,
-        }
-    }
-
-    #[test]
-    fn the_sweep_span_is_how_far_the_frames_reach_off_the_first_plane() {
-        // 101 x 51 px at 0.2 mm/px: a frame 20 x 10 mm in the world's x-y plane.
-        let scale = DMat4::from_scale(DVec3::new(0.2, 0.2, 1.0));
-        let moved = |z_mm: f64| posed(DMat4::from_translation(DVec3::new(3.0, -2.0, z_mm)) * scale);
-        let still: Vec<FramePose> = (0..10).map(|_| moved(0.0)).collect();
-        assert_eq!(sweep_span_mm(101, 51, &still), Some(0.0));
-        // Sliding within its own plane covers no thickness either.
-        let sliding = [
-            moved(0.0),
-            posed(DMat4::from_translation(DVec3::X * 5.0) * scale),
-        ];
-        assert_eq!(sweep_span_mm(101, 51, &sliding), Some(0.0));
-        let linear: Vec<FramePose> = (0..10).map(|k| moved(0.4 * k as f64)).collect();
-        assert!((sweep_span_mm(101, 51, &linear).unwrap() - 3.6).abs() < 1e-9);
-        // A rotation about the frame's own centre line (x = 10 mm) keeps the image centre still;
-        // turned by 30 degrees the frame's far edge leaves the plane by 10 mm x sin 30 = 5 mm.
-        let about_centre = |degrees: f64| {
-            let centre = DVec3::new(10.0, 0.0, 0.0);
-            let turn = DMat4::from_translation(centre)
-                * DMat4::from_quat(DQuat::from_rotation_y(degrees.to_radians()))
-                * DMat4::from_translation(-centre);
-            posed(turn * scale)
-        };
-        let fan = [about_centre(0.0), about_centre(30.0)];
-        assert!((sweep_span_mm(101, 51, &fan).unwrap() - 5.0).abs() < 1e-9);
-        assert_eq!(sweep_span_mm(101, 51, &[]), None);
-        assert_eq!(sweep_span_mm(1, 51, &still), None);
-    }
 
     #[test]
     fn the_weak_level_lies_between_the_background_and_the_iso_level() {
