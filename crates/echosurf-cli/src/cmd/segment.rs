@@ -36,6 +36,11 @@ pub struct SegmentArgs {
     /// the paper): an echo entering the view is kept at full width on its first frame.
     #[arg(long)]
     pub backward_pass: bool,
+    /// The band follows only the echoes it holds (the paper's likelihood "for pixels in B_i", read
+    /// strictly): edgels outside it are ignored, so a first band drawn around one structure (--init)
+    /// stays on it; echoes that come into view away from the band are not picked up.
+    #[arg(long)]
+    pub follow_band: bool,
     /// Gaussian smoothing before the gradients, in px (default 0.5 mm, 1 mm with --chain-edgels).
     #[arg(long, conflicts_with = "smoothing_mm")]
     pub smoothing_px: Option<f64>,
@@ -119,6 +124,7 @@ impl SegmentArgs {
             ),
             threshold: self.threshold,
             backward_pass: self.backward_pass,
+            follow_band: self.follow_band,
             ..defaults
         }
     }

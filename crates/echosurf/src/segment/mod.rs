@@ -43,6 +43,8 @@
 //! a warning naming the frame, then automatic re-initialisation on that frame); a relative floor on edgel
 //! strength so speckle edges do not fill up the M where a boundary is in view; the clip rectangle (pixels
 //! outside it are never kept and never produce edgels), shrunk to the non-black data region of the frames;
+//! a band that follows only what it holds ([`SegmentOptions::follow_band`], CLI `--follow-band`, off by
+//! default: edgels outside the carried band are ignored, the paper's step 3 read strictly);
 //! a backward pass ([`SegmentOptions::backward_pass`], CLI `--backward-pass`, off by default): after each
 //! sweep the band is propagated back from its last frame as well and the union kept, so an echo that
 //! enters the view gets the full band on its first frame, not only the narrow band of an unconfirmed
@@ -173,6 +175,15 @@ pub struct SegmentOptions {
     /// and at full width from the next frame on; going back, that frame inherits the full band.
     #[serde(default)]
     pub backward_pass: bool,
+    /// The paper's step 3 read strictly ("likelihood for pixels in B_i"): edgels outside the carried
+    /// band are ignored, so the band follows only the echoes it already holds and a band drawn around
+    /// one structure stays on it (the spine's bone instead of the bright tissue under the probe).
+    /// Without it, an edgel outside the band keeps 11.4 px around it and, from the next frame, the full
+    /// band: every strong echo in the frame joins within two frames. The cost: an echo that comes into
+    /// view away from the band is never picked up (the automatic first band on the simulated duck then
+    /// misses its far wall). Off by default.
+    #[serde(default)]
+    pub follow_band: bool,
 }
 
 impl Default for SegmentOptions {
@@ -197,6 +208,7 @@ impl Default for SegmentOptions {
             auto_shadow_length: Length::Px(64.0),
             detect_data_region: true,
             backward_pass: false,
+            follow_band: false,
         }
     }
 }
@@ -459,6 +471,8 @@ struct Propagator {
     min_edgels_in_band: usize,
     prior_inside: f32,
     prior_outside: f32,
+    /// What an edgel outside the carried band carries: C0, or 0 with [`SegmentOptions::follow_band`].
+    outside_edgel_prior: f32,
     threshold: f32,
     /// Distances are capped one pixel beyond the truncation.
     cap_px: u32,
@@ -543,7 +557,7 @@ impl Propagator {
             .for_each(|(dst, (din, dout))| {
                 for ((b, &di), &d_o) in dst.iter_mut().zip(din).zip(dout) {
                     let l_p = (self.prior_inside * self.proximity_at(di))
-                        .max(self.prior_outside * self.proximity_at(d_o));
+                        .max(self.outside_edgel_prior * self.proximity_at(d_o));
                     *b = l_p + self.prior_outside >= self.threshold;
                 }
             });
@@ -818,7 +832,11 @@ fn resolve_parameters(
             ((options.edgel_fraction * crop_width as f64).round() as usize).max(1)
         }),
         band_radius_inside_px: radius_for(options.prior_inside),
-        band_radius_outside_px: radius_for(c0),
+        band_radius_outside_px: if options.follow_band {
+            0.0
+        } else {
+            radius_for(c0)
+        },
     }
 }
 
@@ -864,6 +882,11 @@ impl Propagator {
                 .max(1),
             prior_inside: options.prior_inside as f32,
             prior_outside: options.prior_outside as f32,
+            outside_edgel_prior: if options.follow_band {
+                0.0
+            } else {
+                options.prior_outside as f32
+            },
             threshold: options.threshold as f32,
             cap_px,
             proximity,

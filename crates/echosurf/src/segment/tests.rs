@@ -608,3 +608,67 @@ fn a_later_sweep_starts_from_the_given_band_and_the_carried_one() {
         "{near_kept} {kept_all}"
     );
 }
+
+#[test]
+fn a_band_that_follows_what_it_holds_never_takes_in_a_second_echo() {
+    // Two clean echoes 100 px apart in every frame (rows 40 and 140 of 200); the first band is drawn
+    // around the upper one. By default the lower echo's edgels, outside the band, keep 11.4 px around
+    // them on frame 0 and the full band from frame 1 on; following the band, no pixel near it is kept.
+    let (w, h, n) = (64usize, 200usize, 5usize);
+    let row_grey = |v: usize| match v {
+        40..=49 | 140..=149 => 200u8,
+        _ => 20,
+    };
+    let frame: Vec<u8> = (0..h)
+        .flat_map(|v| std::iter::repeat_n(row_grey(v), w))
+        .collect();
+    let sequence = TrackedSequence {
+        width: w,
+        height: h,
+        channels: 1,
+        orientation: "MF".into(),
+        frames: vec![TrackedFrame::default(); n],
+        pixels: PixelData::U8(frame.repeat(n)),
+        header: Default::default(),
+    };
+    let poses = PoseResolution {
+        poses: (0..n)
+            .map(|k| FramePose {
+                frame_index: k,
+                image_to_world: DMat4::from_translation(glam::DVec3::Z * k as f64),
+            })
+            .collect(),
+        skipped: vec![],
+        world_frame: "Tracker".into(),
+    };
+    let upper = InitialBand::Polygon(vec![[-1.0, 25.0], [70.0, 25.0], [70.0, 60.0], [-1.0, 60.0]]);
+    let run = |follow_band: bool| {
+        let options = SegmentOptions {
+            follow_band,
+            // One edgel per column on each echo (the M largest would otherwise all lie on one).
+            edgel_count: Some(2 * w),
+            ..SegmentOptions::default()
+        };
+        segment_sequence(&sequence, &poses, None, &upper, &options, &NoProgress).unwrap()
+    };
+    let rows_kept = |masks: &BandMasks, f: usize, rows: std::ops::Range<usize>| {
+        rows.filter(|&v| masks.masks[f][v * w + w / 2] != 0).count()
+    };
+    let (default, following) = (run(false), run(true));
+    for f in 0..n {
+        // Both keep the upper echo at full width: 29 px either side of its edgel (row 39).
+        assert_eq!(rows_kept(&default, f, 10..70), 59, "frame {f}");
+        assert_eq!(rows_kept(&following, f, 10..70), 59, "frame {f}");
+        assert_eq!(rows_kept(&following, f, 100..h), 0, "frame {f}");
+        assert!(following.warnings.is_empty(), "{:?}", following.warnings);
+    }
+    assert_eq!(
+        rows_kept(&default, 0, 100..h),
+        23,
+        "11.4 px either side of row 139"
+    );
+    for f in 1..n {
+        assert_eq!(rows_kept(&default, f, 100..h), 59, "frame {f}");
+    }
+    assert_eq!(following.parameters.band_radius_outside_px, 0.0);
+}
