@@ -181,9 +181,13 @@ pub fn mesh_outputs(out: &Path, iso: &IsoLevels) -> Vec<Output> {
     }
 }
 
+/// A level as a person would write it: the automatic level is chosen in single precision, and its
+/// double-precision digits (`112.19999694824219`) would only say so.
 fn format_level(level: f64) -> String {
     if level.fract() == 0.0 {
         format!("{level:.0}")
+    } else if f64::from(level as f32) == level {
+        format!("{}", level as f32)
     } else {
         format!("{level}")
     }
@@ -567,7 +571,15 @@ pub(crate) fn echo_margin(mm: f64) -> anyhow::Result<Option<f64>> {
 
 #[cfg(test)]
 mod tests {
-    use super::{IsoLevels, parse_iso};
+    use super::{IsoLevels, format_level, parse_iso};
+
+    #[test]
+    fn levels_are_written_as_a_person_would() {
+        assert_eq!(format_level(40.0), "40");
+        assert_eq!(format_level(60.1), "60.1");
+        assert_eq!(format_level(f64::from(112.2f32)), "112.2");
+        assert_eq!(format_level(-0.5), "-0.5");
+    }
 
     #[test]
     fn iso_levels_are_auto_or_distinct_finite_numbers() {
