@@ -145,18 +145,10 @@ fn mm_lengths_convert_with_the_pixel_size() {
     assert!((p.band_radius_outside_px - 15.0 * (2.0 * (0.2f64 / 0.15).ln()).sqrt()).abs() < 1e-9);
 }
 
-#[test]
-fn band_follows_the_boundary_and_is_centred_on_it() {
-    // A clean horizontal step moving 6 px per frame: the band must be the paper's +/-29 px around this
-    // frame's edge, not around the first frame's.
-    let (w, h, n) = (64usize, 160usize, 6usize);
-    let mut pixels = Vec::new();
-    for k in 0..n {
-        let edge = 40 + 6 * k;
-        for v in 0..h {
-            pixels.extend(std::iter::repeat_n(if v >= edge { 200u8 } else { 20 }, w));
-        }
-    }
+/// An MF sequence of `w` x `h` grey frames (`pixels` holds them one after the other), every frame
+/// placed at the same pose: what the band does depends on the pixels alone.
+fn frames_in_place(w: usize, h: usize, pixels: Vec<u8>) -> (TrackedSequence, PoseResolution) {
+    let n = pixels.len() / (w * h);
     let sequence = TrackedSequence {
         width: w,
         height: h,
@@ -176,6 +168,22 @@ fn band_follows_the_boundary_and_is_centred_on_it() {
         skipped: vec![],
         world_frame: "Tracker".into(),
     };
+    (sequence, poses)
+}
+
+#[test]
+fn band_follows_the_boundary_and_is_centred_on_it() {
+    // A clean horizontal step moving 6 px per frame: the band must be the paper's +/-29 px around this
+    // frame's edge, not around the first frame's.
+    let (w, h, n) = (64usize, 160usize, 6usize);
+    let mut pixels = Vec::new();
+    for k in 0..n {
+        let edge = 40 + 6 * k;
+        for v in 0..h {
+            pixels.extend(std::iter::repeat_n(if v >= edge { 200u8 } else { 20 }, w));
+        }
+    }
+    let (sequence, poses) = frames_in_place(w, h, pixels);
     let init = InitialBand::Polygon(vec![[-1.0, 30.0], [70.0, 30.0], [70.0, 50.0], [-1.0, 50.0]]);
     let masks = segment_sequence(
         &sequence,
@@ -622,25 +630,7 @@ fn a_band_that_follows_what_it_holds_never_takes_in_a_second_echo() {
     let frame: Vec<u8> = (0..h)
         .flat_map(|v| std::iter::repeat_n(row_grey(v), w))
         .collect();
-    let sequence = TrackedSequence {
-        width: w,
-        height: h,
-        channels: 1,
-        orientation: "MF".into(),
-        frames: vec![TrackedFrame::default(); n],
-        pixels: PixelData::U8(frame.repeat(n)),
-        header: Default::default(),
-    };
-    let poses = PoseResolution {
-        poses: (0..n)
-            .map(|k| FramePose {
-                frame_index: k,
-                image_to_world: DMat4::from_translation(glam::DVec3::Z * k as f64),
-            })
-            .collect(),
-        skipped: vec![],
-        world_frame: "Tracker".into(),
-    };
+    let (sequence, poses) = frames_in_place(w, h, frame.repeat(n));
     let upper = InitialBand::Polygon(vec![[-1.0, 25.0], [70.0, 25.0], [70.0, 60.0], [-1.0, 60.0]]);
     let run = |follow_band: bool| {
         let options = SegmentOptions {
