@@ -64,9 +64,9 @@ pub fn output(option: impl Into<String>, path: &Path, holds: Holds) -> Output {
 }
 
 /// Refuses an output that is the same file as one of `inputs` or as another output, whose name does
-/// not end in an extension of what it holds, that is a folder, or whose folder does not exist. Paths are compared resolved, so
-/// `./a.mha`, `dir/../a.mha` and a symbolic link to it are one file; an output that does not exist yet
-/// is resolved through its folder.
+/// not end in an extension of what it holds, that is a folder, or whose folder does not exist. Paths
+/// are compared resolved, so `./a.mha`, `dir/../a.mha` and a symbolic link to it are one file; an
+/// output that does not exist yet is resolved through its folder.
 pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<()> {
     let inputs: Vec<(PathBuf, &PathBuf)> = inputs.iter().map(|p| (resolved(p), p)).collect();
     let mut seen: Vec<(PathBuf, &str)> = Vec::with_capacity(outputs.len());

@@ -31,13 +31,14 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let levels = match parse_iso(&args.iso)? {
-        IsoLevels::Levels(v) if !v.is_empty() => v,
+    let iso = parse_iso(&args.iso)?;
+    let levels = match &iso {
+        IsoLevels::Levels(v) if !v.is_empty() => v.clone(),
         _ => anyhow::bail!(
             "--iso: give the level(s) as numbers (a model carries no echo statistics)"
         ),
     };
-    let outputs = mesh_outputs(&args.out, &IsoLevels::Levels(levels.clone()));
+    let outputs = mesh_outputs(&args.out, &iso);
     check_outputs(std::slice::from_ref(&args.model), &outputs)?;
     let model = RbfModel::load(&args.model)?;
     let centres = model.centres().to_vec();

@@ -468,12 +468,11 @@ pub(crate) fn place_frames(
         )
     })?;
     let span_mm = sweep_span_mm(sequence.width, sequence.height, &poses.poses);
-    if span_mm.is_some_and(|mm| mm < MIN_SWEEP_SPAN_MM) {
+    if let Some(mm) = span_mm.filter(|&mm| mm < MIN_SWEEP_SPAN_MM) {
         return Err(Error::InvalidInput(format!(
-            "all {} placed frames lie within {:.2} mm of one plane: the probe was not swept (or its \
+            "all {} placed frames lie within {mm:.2} mm of one plane: the probe was not swept (or its \
              poses do not change), so the frames hold no volume to extract a surface from",
-            poses.poses.len(),
-            span_mm.unwrap_or_default()
+            poses.poses.len()
         )));
     }
     Ok(poses)
