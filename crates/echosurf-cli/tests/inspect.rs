@@ -228,3 +228,99 @@ fn frames_in_one_plane_are_pointed_out() {
         "{text}"
     );
 }
+
+/// Decodes an 8-bit grey PNG: (width, height, pixels).
+fn grey_png(path: &std::path::Path) -> (u32, u32, Vec<u8>) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0u8; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!(info.color_type, png::ColorType::Grayscale);
+    buf.truncate(info.buffer_size());
+    (info.width, info.height, buf)
+}
+
+#[test]
+fn a_frame_is_written_to_draw_the_first_band_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let spine = path_arg("SpinePhantomFreehand.igs.mha");
+    let sequence = echosurf::io::read_sequence(&real("SpinePhantomFreehand.igs.mha")).unwrap();
+    let echosurf::io::PixelData::U8(pixels) = &sequence.pixels else {
+        panic!("the spine sweep is 8-bit")
+    };
+    let frame_len = 820 * 616;
+
+    // By default the first frame of the first sweep, where --init's band is used; pixel for pixel.
+    let first = dir.path().join("first.png");
+    let out = inspect(&[
+        &spine,
+        "--config",
+        &path_arg(NN_MEAN),
+        "--frame-png",
+        first.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("frames      21") && text.contains("frame 0 written"),
+        "{text}"
+    );
+    let (w, h, grey) = grey_png(&first);
+    assert_eq!((w, h), (820, 616));
+    assert_eq!(grey, pixels[..frame_len]);
+
+    // Another frame; with --json the summary alone is on stdout.
+    let last = dir.path().join("last.png");
+    let out = inspect(&[
+        &spine,
+        "--json",
+        "--frame",
+        "20",
+        "--frame-png",
+        last.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(json["frames"], 21);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("frame 20 written"));
+    assert_eq!(grey_png(&last).2, pixels[20 * frame_len..21 * frame_len]);
+
+    // A frame that is not there: refused before anything is printed or written.
+    let none = dir.path().join("none.png");
+    let out = inspect(&[
+        &spine,
+        "--frame",
+        "21",
+        "--frame-png",
+        none.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(out.stdout.is_empty());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("frame 21") && err.contains("21 frames"),
+        "{err}"
+    );
+    assert!(!none.exists());
+
+    // Never over the recording itself.
+    let copy = dir.path().join("spine.mha");
+    std::fs::copy(real("SpinePhantomFreehand.igs.mha"), &copy).unwrap();
+    let before = std::fs::read(&copy).unwrap();
+    let out = inspect(&[
+        copy.to_str().unwrap(),
+        "--frame-png",
+        copy.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("an input of this run"));
+    assert_eq!(std::fs::read(&copy).unwrap(), before);
+}

@@ -10,7 +10,8 @@ use crate::{Error, FormatProblem, Result};
 const MAX_MASK_PIXELS: u64 = 1 << 28;
 
 impl InitialBand {
-    /// Reads a PNG mask (any colour type or depth; a pixel is in the band if any channel is non-zero).
+    /// Reads a PNG mask (any colour type or depth): a pixel is in the band if any colour channel is
+    /// non-zero and, with an alpha channel, it is not fully transparent.
     pub fn from_png(path: &Path) -> Result<InitialBand> {
         let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
         let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
@@ -35,14 +36,19 @@ impl InitialBand {
             .next_frame(&mut buf)
             .map_err(|e| bad(format!("PNG mask does not decode: {e}")))?;
         let channels = frame.color_type.samples();
+        // A band painted on a transparent layer: its unpainted pixels are see-through, whatever
+        // colour they carry.
+        let colours = match frame.color_type {
+            png::ColorType::GrayscaleAlpha | png::ColorType::Rgba => channels - 1,
+            _ => channels,
+        };
         let stride = frame.line_size;
         let mut data = Vec::with_capacity(width * height);
         for v in 0..height {
             let row = &buf[v * stride..v * stride + width * channels];
-            data.extend(
-                row.chunks_exact(channels)
-                    .map(|px| px.iter().any(|&x| x != 0)),
-            );
+            data.extend(row.chunks_exact(channels).map(|px| {
+                px[..colours].iter().any(|&x| x != 0) && px[colours..].iter().all(|&a| a != 0)
+            }));
         }
         Ok(InitialBand::Mask {
             width,

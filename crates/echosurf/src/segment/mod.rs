@@ -82,7 +82,7 @@ use std::collections::BTreeSet;
 use glam::DMat4;
 
 pub use init::{find_echo_structures, rasterize_polygon};
-pub use preview::{default_preview_frames, write_band_preview};
+pub use preview::{default_preview_frames, write_band_preview, write_frame_png};
 
 use crate::io::{ClipRect, PixelData, PoseResolution, TrackedFrame, TrackedSequence};
 use crate::progress::Progress;

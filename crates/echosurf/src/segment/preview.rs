@@ -125,3 +125,52 @@ pub fn write_band_preview(
         png_writer.finish().map_err(std::io::Error::other)
     })
 }
+
+/// Writes frame `index` as an 8-bit grey PNG of the frame's own size, pixel for pixel and MF-oriented:
+/// the picture to draw a first band on (`--init` takes a PNG mask of this size, or a JSON polygon in its
+/// pixel coordinates). 8-bit frames are written as stored; other pixel types are mapped linearly from
+/// the frame's own range to 0..255, and channels are averaged.
+pub fn write_frame_png(path: &Path, sequence: &TrackedSequence, index: usize) -> Result<()> {
+    if sequence.is_tracking_only() {
+        return Err(Error::InvalidInput(
+            "the sequence holds no images (tracking only): there is no frame to write".into(),
+        ));
+    }
+    if index >= sequence.frames.len() {
+        return Err(Error::InvalidInput(format!(
+            "frame {index} is out of range (the sequence has {} frames, 0-{})",
+            sequence.frames.len(),
+            sequence.frames.len().saturating_sub(1)
+        )));
+    }
+    let grey = sequence.frame_f32(index);
+    let as_stored = matches!(sequence.pixels, crate::io::PixelData::U8(_));
+    let (lo, hi) = grey
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &g| {
+            (lo.min(g), hi.max(g))
+        });
+    let bytes: Vec<u8> = if as_stored {
+        grey.iter()
+            .map(|&g| g.round().clamp(0.0, 255.0) as u8)
+            .collect()
+    } else if hi > lo {
+        let scale = 255.0 / (hi - lo);
+        grey.iter()
+            .map(|&g| ((g - lo) * scale).round().clamp(0.0, 255.0) as u8)
+            .collect()
+    } else {
+        vec![0; grey.len()]
+    };
+    let (w, h) = (sequence.width as u32, sequence.height as u32);
+    write_atomic(path, |writer| {
+        let mut encoder = png::Encoder::new(writer, w, h);
+        encoder.set_color(png::ColorType::Grayscale);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut png_writer = encoder.write_header().map_err(std::io::Error::other)?;
+        png_writer
+            .write_image_data(&bytes)
+            .map_err(std::io::Error::other)?;
+        png_writer.finish().map_err(std::io::Error::other)
+    })
+}

@@ -662,3 +662,74 @@ fn a_band_that_follows_what_it_holds_never_takes_in_a_second_echo() {
     }
     assert_eq!(following.parameters.band_radius_outside_px, 0.0);
 }
+
+/// Decodes an 8-bit grey PNG: (width, height, pixels).
+fn read_grey_png(path: &std::path::Path) -> (u32, u32, Vec<u8>) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0u8; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!(info.color_type, png::ColorType::Grayscale);
+    buf.truncate(info.buffer_size());
+    (info.width, info.height, buf)
+}
+
+#[test]
+fn a_frame_is_written_pixel_for_pixel_to_draw_on() {
+    let s = synthetic_sweep(40, 30, 3, 0.15, 1.0, 5);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("frame2.png");
+    write_frame_png(&path, &s.sequence, 2).unwrap();
+    let PixelData::U8(px) = &s.sequence.pixels else {
+        unreachable!()
+    };
+    let (w, h, grey) = read_grey_png(&path);
+    assert_eq!((w, h), (40, 30));
+    assert_eq!(grey, px[2 * 1200..3 * 1200]);
+
+    // Other pixel types: the frame's own range mapped to 0..255.
+    let mut wide = s.sequence.clone();
+    wide.pixels = PixelData::U16(px.iter().map(|&g| 1000 + 4 * g as u16).collect());
+    write_frame_png(&path, &wide, 2).unwrap();
+    let (_, _, scaled) = read_grey_png(&path);
+    let frame = &px[2 * 1200..3 * 1200];
+    let (lo, hi) = (*frame.iter().min().unwrap(), *frame.iter().max().unwrap());
+    assert!(hi > lo);
+    for (&g, &out) in frame.iter().zip(&scaled) {
+        let want = (g - lo) as f64 * 255.0 / (hi - lo) as f64;
+        assert!(
+            (out as f64 - want).abs() <= 0.5 + 1e-9,
+            "{g} -> {out}, want {want}"
+        );
+    }
+
+    let err = write_frame_png(&dir.path().join("x.png"), &s.sequence, 3)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("frame 3") && err.contains("3 frames"), "{err}");
+    assert!(!dir.path().join("x.png").exists());
+}
+
+#[test]
+fn a_band_painted_on_a_transparent_layer_is_what_was_painted() {
+    // RGBA 4 x 1: painted opaque red; transparent but coloured (an editor may keep colour under
+    // alpha 0); opaque black; half-transparent white.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("layer.png");
+    let mut bytes = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut bytes, 4, 1);
+        enc.set_color(png::ColorType::Rgba);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut wr = enc.write_header().unwrap();
+        wr.write_image_data(&[
+            255, 0, 0, 255, 200, 200, 200, 0, 0, 0, 0, 255, 255, 255, 255, 128,
+        ])
+        .unwrap();
+    }
+    std::fs::write(&path, &bytes).unwrap();
+    match InitialBand::from_png(&path).unwrap() {
+        InitialBand::Mask { data, .. } => assert_eq!(data, vec![true, false, false, true]),
+        other => panic!("expected a mask, got {other:?}"),
+    }
+}
