@@ -214,32 +214,26 @@ pub fn render_views(mesh: &Mesh, options: &RenderOptions) -> Result<RgbImage> {
 /// Encodes an image as an 8-bit RGB PNG (deterministic bytes).
 pub fn encode_png(image: &RgbImage) -> Result<Vec<u8>> {
     let mut out = Vec::new();
-    encode_into(&mut out, image).map_err(|e| Error::InvalidInput(format!("PNG encoding: {e}")))?;
+    crate::io::atomic::encode_png8(
+        &mut out,
+        image.width,
+        image.height,
+        png::ColorType::Rgb,
+        &image.pixels,
+    )
+    .map_err(|e| Error::InvalidInput(format!("PNG encoding: {e}")))?;
     Ok(out)
-}
-
-fn encode_into(w: impl std::io::Write, image: &RgbImage) -> std::io::Result<()> {
-    let mut encoder = png::Encoder::new(w, image.width, image.height);
-    encoder.set_color(png::ColorType::Rgb);
-    encoder.set_depth(png::BitDepth::Eight);
-    let mut writer = encoder.write_header().map_err(std::io::Error::other)?;
-    writer
-        .write_image_data(&image.pixels)
-        .map_err(std::io::Error::other)?;
-    writer.finish().map_err(std::io::Error::other)
 }
 
 /// Writes `image` as a PNG, atomically.
 pub fn write_png(path: &Path, image: &RgbImage) -> Result<()> {
-    if image.pixels.len() != image.width as usize * image.height as usize * 3 {
-        return Err(Error::InvalidInput(format!(
-            "{}: image buffer does not match {}x{}",
-            path.display(),
-            image.width,
-            image.height
-        )));
-    }
-    crate::io::atomic::write_atomic(path, |w| encode_into(w, image))
+    crate::io::atomic::write_png_atomic(
+        path,
+        image.width,
+        image.height,
+        png::ColorType::Rgb,
+        &image.pixels,
+    )
 }
 
 /// Triangles with their corners and shading normals gathered once for all views.

@@ -128,6 +128,41 @@ pub fn temp_path(path: &Path) -> PathBuf {
     }
 }
 
+/// Writes an 8-bit PNG atomically: `pixels` row-major, `colour` samples per pixel (grey, RGB, ...).
+pub fn write_png_atomic(
+    path: &Path,
+    width: u32,
+    height: u32,
+    colour: png::ColorType,
+    pixels: &[u8],
+) -> Result<()> {
+    if pixels.len() != width as usize * height as usize * colour.samples() {
+        return Err(Error::InvalidInput(format!(
+            "{}: image buffer does not match {width}x{height} {colour:?}",
+            path.display()
+        )));
+    }
+    write_atomic(path, |w| encode_png8(w, width, height, colour, pixels))
+}
+
+/// Encodes an 8-bit PNG (deterministic bytes); the caller checks that `pixels` fits the size.
+pub fn encode_png8(
+    w: impl Write,
+    width: u32,
+    height: u32,
+    colour: png::ColorType,
+    pixels: &[u8],
+) -> std::io::Result<()> {
+    let mut encoder = png::Encoder::new(w, width, height);
+    encoder.set_color(colour);
+    encoder.set_depth(png::BitDepth::Eight);
+    let mut writer = encoder.write_header().map_err(std::io::Error::other)?;
+    writer
+        .write_image_data(pixels)
+        .map_err(std::io::Error::other)?;
+    writer.finish().map_err(std::io::Error::other)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -4,7 +4,7 @@ use std::path::Path;
 
 use super::BandMasks;
 use crate::io::TrackedSequence;
-use crate::io::atomic::write_atomic;
+use crate::io::atomic::write_png_atomic;
 use crate::{Error, Result};
 
 /// Montages wider than this are drawn at a reduced scale.
@@ -114,16 +114,7 @@ pub fn write_band_preview(
             }
         }
     }
-    write_atomic(path, |writer| {
-        let mut encoder = png::Encoder::new(writer, mw as u32, mh as u32);
-        encoder.set_color(png::ColorType::Rgb);
-        encoder.set_depth(png::BitDepth::Eight);
-        let mut png_writer = encoder.write_header().map_err(std::io::Error::other)?;
-        png_writer
-            .write_image_data(&rgb)
-            .map_err(std::io::Error::other)?;
-        png_writer.finish().map_err(std::io::Error::other)
-    })
+    write_png_atomic(path, mw as u32, mh as u32, png::ColorType::Rgb, &rgb)
 }
 
 /// Writes frame `index` as an 8-bit grey PNG of the frame's own size, pixel for pixel and MF-oriented:
@@ -162,15 +153,11 @@ pub fn write_frame_png(path: &Path, sequence: &TrackedSequence, index: usize) ->
     } else {
         vec![0; grey.len()]
     };
-    let (w, h) = (sequence.width as u32, sequence.height as u32);
-    write_atomic(path, |writer| {
-        let mut encoder = png::Encoder::new(writer, w, h);
-        encoder.set_color(png::ColorType::Grayscale);
-        encoder.set_depth(png::BitDepth::Eight);
-        let mut png_writer = encoder.write_header().map_err(std::io::Error::other)?;
-        png_writer
-            .write_image_data(&bytes)
-            .map_err(std::io::Error::other)?;
-        png_writer.finish().map_err(std::io::Error::other)
-    })
+    write_png_atomic(
+        path,
+        sequence.width as u32,
+        sequence.height as u32,
+        png::ColorType::Grayscale,
+        &bytes,
+    )
 }

@@ -193,17 +193,11 @@ pub fn write_preview(path: &Path, sim: &Simulation, count: usize) -> Result<()> 
             image[dst..dst + w].copy_from_slice(src);
         }
     }
-    let mut png_bytes = Vec::new();
-    {
-        let mut encoder = png::Encoder::new(&mut png_bytes, total_w as u32, total_h as u32);
-        encoder.set_color(png::ColorType::Grayscale);
-        encoder.set_depth(png::BitDepth::Eight);
-        let mut writer = encoder
-            .write_header()
-            .map_err(|e| Error::InvalidInput(format!("{}: PNG encoding: {e}", path.display())))?;
-        writer
-            .write_image_data(&image)
-            .map_err(|e| Error::InvalidInput(format!("{}: PNG encoding: {e}", path.display())))?;
-    }
-    crate::io::atomic::write_bytes_atomic(path, &png_bytes)
+    crate::io::atomic::write_png_atomic(
+        path,
+        total_w as u32,
+        total_h as u32,
+        png::ColorType::Grayscale,
+        &image,
+    )
 }
