@@ -143,3 +143,97 @@ fn compare_sequence_options_fail_cleanly() {
     let err = on_spine(&[]);
     assert!(err.contains("share a world frame"), "{err}");
 }
+
+#[test]
+fn error_and_miss_maps_colour_each_vertex_by_its_distance() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = dir.path().join("truth.stl");
+    let mesh = dir.path().join("mesh.ply");
+    echosurf::io::write_mesh(&truth, &cuboid(DVec3::ZERO, DVec3::splat(10.0))).unwrap();
+    // Every corner of the grown box is 0.25 * sqrt(3) mm from the truth's nearest corner; every corner
+    // of the truth 0.25 mm from the grown box's nearest face.
+    echosurf::io::write_mesh(&mesh, &cuboid(DVec3::splat(-0.25), DVec3::splat(10.25))).unwrap();
+    let (error_map, miss_map) = (dir.path().join("error.ply"), dir.path().join("miss.ply"));
+    let run = |extra: &[&std::ffi::OsStr]| {
+        Command::new(env!("CARGO_BIN_EXE_echosurf"))
+            .arg("compare")
+            .arg(&mesh)
+            .arg(&truth)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let out = run(&[
+        "--json".as_ref(),
+        "--error-map".as_ref(),
+        error_map.as_os_str(),
+        "--miss-map".as_ref(),
+        miss_map.as_os_str(),
+        "--map-scale-mm".as_ref(),
+        "0.5".as_ref(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(json["accuracy"]["mean_mm"].as_f64().unwrap() > 0.2);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        said.contains("error.ply") && said.contains("miss.ply"),
+        "{said}"
+    );
+    for (map, corner) in [(&error_map, 0.25 * 3f64.sqrt()), (&miss_map, 0.25)] {
+        assert_eq!(echosurf::io::read_mesh(map).unwrap().triangles.len(), 12);
+        let cloud = echosurf::io::read_point_cloud(map).unwrap();
+        let distances = cloud.scalar("distance_mm").unwrap();
+        assert_eq!(distances.len(), 8);
+        let want = echosurf::metrics::distance_colour(corner, 0.5);
+        for (k, &d) in distances.iter().enumerate() {
+            assert!((d as f64 - corner).abs() < 1e-5, "{d}");
+            let got = ["red", "green", "blue"].map(|c| cloud.scalar(c).unwrap()[k] as u8);
+            assert_eq!(got, want);
+        }
+    }
+
+    // Refused before anything is written: a map over an input, one file for both maps, not PLY.
+    let refused = dir.path().join("refused.ply");
+    for (extra, says) in [
+        (
+            vec!["--error-map", mesh.to_str().unwrap()],
+            "an input of this run",
+        ),
+        (
+            vec![
+                "--error-map",
+                refused.to_str().unwrap(),
+                "--miss-map",
+                refused.to_str().unwrap(),
+            ],
+            "--miss-map",
+        ),
+        (vec!["--miss-map", "map.stl"], "PLY"),
+        (
+            vec![
+                "--error-map",
+                refused.to_str().unwrap(),
+                "--map-scale-mm",
+                "0",
+            ],
+            "--map-scale-mm",
+        ),
+    ] {
+        let extra: Vec<&std::ffi::OsStr> = extra.iter().map(|s| s.as_ref()).collect();
+        let out = run(&extra);
+        assert!(!out.status.success(), "{extra:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(says), "{extra:?}: {err}");
+        assert!(!refused.exists());
+    }
+    assert_eq!(
+        echosurf::io::read_mesh(&mesh).unwrap().vertices.len(),
+        8,
+        "the input is untouched"
+    );
+}

@@ -25,6 +25,7 @@ fn demo_writes_everything_and_its_ridge_sheet_is_accurate() {
         "duck_surface.ply",
         "duck_report.json",
         "duck_preview.png",
+        "duck_error_map.png",
     ] {
         assert!(out.join(file).is_file(), "{file} missing:\n{stdout}");
     }

@@ -43,3 +43,80 @@ fn render_writes_a_deterministic_png_of_the_requested_size() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("no-such-mesh.stl"));
     assert!(!dir.path().join("c.png").exists());
 }
+
+#[test]
+fn distance_to_a_truth_colours_the_picture() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mesh, truth) = (dir.path().join("mesh.ply"), dir.path().join("truth.ply"));
+    echosurf::io::write_mesh(&mesh, &torus(20.0, 6.0, 64, 32)).unwrap();
+    echosurf::io::write_mesh(&truth, &torus(20.0, 5.0, 64, 32)).unwrap();
+    let render = |extra: &[&str], out: &std::path::Path| {
+        Command::new(env!("CARGO_BIN_EXE_echosurf"))
+            .args(["render", mesh.to_str().unwrap(), "--size", "200"])
+            .args(extra)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    let (plain, near, far) = (
+        dir.path().join("plain.png"),
+        dir.path().join("near.png"),
+        dir.path().join("far.png"),
+    );
+    assert!(render(&[], &plain).status.success());
+    // 1 mm apart: red on a 1 mm scale, green on a 2 mm one.
+    for (scale, out) in [("1", &near), ("2", &far)] {
+        let run = render(
+            &[
+                "--distance-to",
+                truth.to_str().unwrap(),
+                "--scale-mm",
+                scale,
+            ],
+            out,
+        );
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        assert!(String::from_utf8_lossy(&run.stdout).contains("coloured by distance to"));
+    }
+    // Pixels clearly red, and pixels clearly green.
+    let counts = |path: &std::path::Path| {
+        let decoder =
+            png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0u8; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        buf.truncate(info.buffer_size());
+        let (mut red, mut green) = (0, 0);
+        for p in buf.chunks_exact(3) {
+            let [r, g, b] = [p[0] as u32, p[1] as u32, p[2] as u32];
+            red += usize::from(r > 60 && r > 2 * g.max(b));
+            green += usize::from(g > 60 && g > r + 20 && g > b + 20);
+        }
+        (red, green)
+    };
+    let ((plain_red, plain_green), (near_red, near_green), (far_red, far_green)) =
+        (counts(&plain), counts(&near), counts(&far));
+    // Only the small axes in the tiles' corners are red or green on the plain picture.
+    assert!(
+        plain_red < 100 && plain_green < 100,
+        "{plain_red} {plain_green}"
+    );
+    assert!(
+        near_red > 2000 && near_green < near_red / 20,
+        "{near_red} {near_green}"
+    );
+    assert!(
+        far_green > 2000 && far_red < far_green / 20,
+        "{far_red} {far_green}"
+    );
+
+    // --scale-mm means nothing without --distance-to.
+    let out = render(&["--scale-mm", "2"], &dir.path().join("x.png"));
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--distance-to"));
+}

@@ -100,6 +100,9 @@ pub struct RenderOptions {
     pub ghost_opacity: f64,
     /// Small x (red), y (green), z (blue) axes in each tile's corner.
     pub axes: bool,
+    /// One sRGB colour per mesh vertex (an error map), instead of `mesh_colour`; back faces show it
+    /// darkened.
+    pub vertex_colours: Option<Vec<[u8; 3]>>,
 }
 
 impl Default for RenderOptions {
@@ -119,6 +122,7 @@ impl Default for RenderOptions {
             ghost_colour: [90, 200, 255],
             ghost_opacity: 0.35,
             axes: true,
+            vertex_colours: None,
         }
     }
 }
@@ -154,6 +158,15 @@ pub fn render_views(mesh: &Mesh, options: &RenderOptions) -> Result<RgbImage> {
         return Err(Error::InvalidInput(format!(
             "ghost opacity must be 0 to 1, got {}",
             options.ghost_opacity
+        )));
+    }
+    if let Some(colours) = &options.vertex_colours
+        && colours.len() != mesh.vertices.len()
+    {
+        return Err(Error::InvalidInput(format!(
+            "{} vertex colours for {} vertices",
+            colours.len(),
+            mesh.vertices.len()
         )));
     }
     let columns = if options.views.len() == 1 { 1 } else { 2 };
@@ -240,13 +253,23 @@ pub fn write_png(path: &Path, image: &RgbImage) -> Result<()> {
 struct Surface {
     /// Corners, and per-corner unit normals (vertex normals, or the face normal three times).
     triangles: Vec<([DVec3; 3], [DVec3; 3])>,
+    /// Per-corner linear colours, parallel to `triangles`, when the vertices have colours.
+    corner_colours: Option<Vec<[[f32; 3]; 3]>>,
 }
+
+/// Back faces of a vertex-coloured surface show its colour at this brightness.
+const BACK_FACE_SHADE: f32 = 0.55;
 
 impl Surface {
     fn new(mesh: &Mesh) -> Self {
+        Self::with_colours(mesh, None)
+    }
+
+    /// `colours` has one entry per vertex (checked by the caller).
+    fn with_colours(mesh: &Mesh, colours: Option<&[[u8; 3]]>) -> Self {
         let n = mesh.vertices.len();
         let smooth = mesh.normals.len() == n;
-        let triangles = mesh
+        let kept: Vec<(&[u32; 3], ([DVec3; 3], [DVec3; 3]))> = mesh
             .triangles
             .iter()
             .filter(|t| t.iter().all(|&i| (i as usize) < n))
@@ -261,10 +284,18 @@ impl Surface {
                 } else {
                     [face; 3]
                 };
-                Some((p, normals))
+                Some((t, (p, normals)))
             })
             .collect();
-        Surface { triangles }
+        let corner_colours = colours.map(|colours| {
+            kept.iter()
+                .map(|(t, _)| t.map(|i| linear(colours[i as usize])))
+                .collect()
+        });
+        Surface {
+            triangles: kept.into_iter().map(|(_, corners)| corners).collect(),
+            corner_colours,
+        }
     }
 
     fn points(&self) -> impl Iterator<Item = DVec3> + '_ {
@@ -284,7 +315,7 @@ struct Scene {
 
 impl Scene {
     fn new(mesh: &Mesh, options: &RenderOptions) -> Self {
-        let mesh = Surface::new(mesh);
+        let mesh = Surface::with_colours(mesh, options.vertex_colours.as_deref());
         let ghost = options.ghost.as_ref().map(Surface::new);
         let lines: Vec<[DVec3; 2]> = options
             .overlay_lines
@@ -467,7 +498,8 @@ fn rasterise(
     buffers: &mut Buffers,
 ) {
     let size = buffers.size;
-    for (corners, normals) in &surface.triangles {
+    for (k, (corners, normals)) in surface.triangles.iter().enumerate() {
+        let corner_colours = surface.corner_colours.as_ref().map(|c| c[k]);
         let s = corners.map(|p| camera.project(p));
         let area = (s[1].x - s[0].x) * (s[2].y - s[0].y) - (s[1].y - s[0].y) * (s[2].x - s[0].x);
         if area.abs() < 1e-12 || !area.is_finite() {
@@ -524,6 +556,16 @@ fn rasterise(
                 let n = (normals[0] * w0 + normals[1] * w1 + normals[2] * w2).normalize_or_zero()
                     * sign;
                 let p = corners[0] * w0 + corners[1] * w1 + corners[2] * w2;
+                let base = match corner_colours {
+                    Some(c) => {
+                        let dim = if facing { 1.0 } else { BACK_FACE_SHADE };
+                        let w = [w0 as f32, w1 as f32, w2 as f32];
+                        std::array::from_fn(|k| {
+                            dim * (w[0] * c[0][k] + w[1] * c[1][k] + w[2] * c[2][k])
+                        })
+                    }
+                    None => base,
+                };
                 buffers.colour[i] = shade(n, camera.to_eye(p), lights, base);
             }
         }
@@ -836,6 +878,57 @@ mod tests {
         // An empty mesh renders the background only.
         let empty = render_views(&Mesh::default(), &small()).unwrap();
         assert_eq!(empty.width, 160);
+    }
+
+    #[test]
+    fn vertex_colours_paint_both_sides_and_must_match_the_vertices() {
+        // The square of the test above, its left edge green and its right edge red.
+        let square = Mesh {
+            vertices: vec![DVec3::ZERO, DVec3::X, DVec3::new(1.0, 1.0, 0.0), DVec3::Y],
+            normals: vec![],
+            triangles: vec![[0, 1, 2], [0, 2, 3]],
+        };
+        let (green, red) = ([0, 200, 0], [200, 0, 0]);
+        let from = |elevation_deg, colours: Vec<[u8; 3]>| RenderOptions {
+            views: vec![View {
+                azimuth_deg: 0.0,
+                elevation_deg,
+            }],
+            projection: Projection::Orthographic,
+            axes: false,
+            vertex_colours: Some(colours),
+            ..small()
+        };
+        let colours = vec![green, red, red, green];
+        let top = render_views(&square, &from(90.0, colours.clone())).unwrap();
+        let bottom = render_views(&square, &from(-90.0, colours.clone())).unwrap();
+        // Find the square's left and right thirds on the picture: the green end and the red end.
+        let row = 80;
+        let lit: Vec<u32> = (0..160)
+            .filter(|&x| {
+                let p = top.pixel(x, row);
+                p[0].max(p[1]) > 60 && p[2] < 40
+            })
+            .collect();
+        assert!(lit.len() > 40, "{lit:?}");
+        let (a, b) = (top.pixel(lit[3], row), top.pixel(lit[lit.len() - 4], row));
+        let (g_end, r_end) = if a[1] > a[0] { (a, b) } else { (b, a) };
+        assert!(
+            g_end[1] > 2 * g_end[0] && r_end[0] > 2 * r_end[1],
+            "{g_end:?} {r_end:?}"
+        );
+        // From below, the same colours, darker; not the back colour.
+        let (front, back) = (top.pixel(80, 80), bottom.pixel(80, 80));
+        assert!(back[2] < 40, "the back is the vertex colour {back:?}");
+        let sum = |p: [u8; 3]| p.iter().map(|&c| c as u32).sum::<u32>();
+        assert!(sum(back) < sum(front), "{back:?} {front:?}");
+
+        let short = RenderOptions {
+            vertex_colours: Some(vec![red; 3]),
+            ..small()
+        };
+        let err = render_views(&square, &short).unwrap_err().to_string();
+        assert!(err.contains("3 vertex colours for 4 vertices"), "{err}");
     }
 
     #[test]

@@ -8,6 +8,8 @@ use echosurf::io;
 use echosurf::mesh::MeshTopology;
 use echosurf::metrics::{CompareOptions, Comparison, SurfaceDistances, compare_meshes};
 
+use super::outputs::{Holds, Output, check_outputs, output};
+
 /// Which side of a wall counts as facing the beam.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum FacingArg {
@@ -61,9 +63,61 @@ pub struct Args {
     /// With --sequence: which side of a wall must face the beam.
     #[arg(long, requires = "sequence", value_enum, default_value = "either")]
     pub facing: FacingArg,
+    /// Write the mesh as a PLY error map: each vertex carries `distance_mm` to the truth and a colour,
+    /// blue at 0 through green and yellow to red at --map-scale-mm and beyond.
+    #[arg(long, value_name = "PLY")]
+    pub error_map: Option<PathBuf>,
+    /// Write the truth as a PLY map of what the mesh misses: each truth vertex's `distance_mm` to the
+    /// mesh, coloured as --error-map.
+    #[arg(long, value_name = "PLY")]
+    pub miss_map: Option<PathBuf>,
+    /// Distance (mm) shown red on the maps.
+    #[arg(long, default_value_t = 1.0)]
+    pub map_scale_mm: f64,
+}
+
+/// Writes `mesh` coloured by each vertex's distance to `to` (see `Args::error_map`).
+fn write_distance_map(
+    path: &std::path::Path,
+    mesh: &echosurf::mesh::Mesh,
+    to: &echosurf::mesh::Mesh,
+    scale_mm: f64,
+) -> anyhow::Result<String> {
+    let (distances, colours) = echosurf::metrics::vertex_distance_map(mesh, to, scale_mm);
+    let values: Vec<f32> = distances.iter().map(|&d| d as f32).collect();
+    io::write_ply_with_vertex_values(path, mesh, "distance_mm", &values, &colours)?;
+    Ok(format!(
+        "{}: {} vertices coloured by distance_mm, blue 0 mm to red {scale_mm} mm and beyond",
+        path.display(),
+        mesh.vertices.len()
+    ))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if !(args.map_scale_mm.is_finite() && args.map_scale_mm > 0.0) {
+        anyhow::bail!(
+            "--map-scale-mm must be a positive distance, got {}",
+            args.map_scale_mm
+        );
+    }
+    let maps: Vec<Output> = [
+        ("--error-map", &args.error_map),
+        ("--miss-map", &args.miss_map),
+    ]
+    .into_iter()
+    .filter_map(|(option, path)| {
+        path.as_deref()
+            .map(|p| output(option, p, Holds::ColouredMesh))
+    })
+    .collect();
+    if !maps.is_empty() {
+        let mut inputs = vec![args.mesh.clone(), args.truth.clone()];
+        if let Some(sequence) = &args.sequence {
+            inputs.extend(io::sequence_files(sequence));
+        }
+        inputs.extend(args.config.iter().cloned());
+        check_outputs(&inputs, &maps)?;
+    }
     let mesh = echosurf::io::read_mesh(&args.mesh)?;
     let truth = echosurf::io::read_mesh(&args.truth)?;
     let options = CompareOptions {
@@ -137,6 +191,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string(&value)?);
     } else {
         print!("{}", table(&args, &comparison, swept.as_ref()));
+    }
+    for (path, from, to) in [
+        (&args.error_map, &mesh, &truth),
+        (&args.miss_map, &truth, &mesh),
+    ] {
+        if let Some(path) = path {
+            let line = write_distance_map(path, from, to, args.map_scale_mm)?;
+            if args.json {
+                eprintln!("{line}");
+            } else {
+                println!("{line}");
+            }
+        }
     }
     Ok(())
 }

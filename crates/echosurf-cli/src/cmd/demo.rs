@@ -14,6 +14,9 @@ use echosurf::simulate::{SimulationOptions, simulate, write_simulation};
 use super::extract::write_preview;
 use crate::progress::BarProgress;
 
+/// The distance shown red on the demo's error map (mm).
+const ERROR_MAP_SCALE_MM: f64 = 1.0;
+
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Folder for everything the demo writes.
@@ -94,6 +97,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
     )?;
     let preview_path = args.out.join("duck_preview.png");
+    // Where the surface is off: blue on the true walls, red 1 mm (the completeness distance) or more.
+    let error_map_path = args.out.join("duck_error_map.png");
+    let error_map = echosurf::render::render_views(
+        &surface.mesh,
+        &echosurf::render::RenderOptions {
+            vertex_colours: Some(
+                echosurf::metrics::vertex_distance_map(&surface.mesh, &truth, ERROR_MAP_SCALE_MM).1,
+            ),
+            ..echosurf::render::RenderOptions::default()
+        },
+    )?;
+    echosurf::render::write_png(&error_map_path, &error_map)?;
     write_preview(&preview_path, &output, Some(truth))?;
 
     let r = &output.report;
@@ -147,6 +162,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!("  surface      {}", mesh_path.display());
     println!("  report       {}", report_path.display());
     println!("  preview      {}", preview_path.display());
+    println!(
+        "  error map    {} (distance to the true walls: blue 0 mm to red {ERROR_MAP_SCALE_MM} mm and beyond)",
+        error_map_path.display()
+    );
     println!("total {:.1} s", start.elapsed().as_secs_f64());
     Ok(())
 }

@@ -19,6 +19,8 @@ pub enum Holds {
     MetaImage,
     /// A PLY point cloud.
     PointCloud,
+    /// A PLY mesh with per-vertex values and colours.
+    ColouredMesh,
     /// JSON, a model: whatever the name.
     AnyName,
 }
@@ -29,7 +31,7 @@ impl Holds {
             Holds::Mesh => &MESH_EXTENSIONS,
             Holds::Png => &["png"],
             Holds::MetaImage => &["mha"],
-            Holds::PointCloud => &["ply"],
+            Holds::PointCloud | Holds::ColouredMesh => &["ply"],
             Holds::AnyName => &[],
         }
     }
@@ -40,6 +42,7 @@ impl Holds {
             Holds::Png => "the picture is written as PNG",
             Holds::MetaImage => "this is written as a MetaImage file with its data inside",
             Holds::PointCloud => "the point cloud is written as PLY",
+            Holds::ColouredMesh => "a mesh with vertex colours is written as PLY",
             Holds::AnyName => "",
         }
     }

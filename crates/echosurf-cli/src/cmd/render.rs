@@ -22,13 +22,34 @@ pub struct Args {
     /// Orthographic instead of perspective projection.
     #[arg(long)]
     pub orthographic: bool,
+    /// Colour the mesh by each vertex's distance to this mesh (e.g. the ground truth): an error map,
+    /// blue at 0 through green and yellow to red at --scale-mm and beyond.
+    #[arg(long, value_name = "MESH")]
+    pub distance_to: Option<PathBuf>,
+    /// With --distance-to: the distance (mm) shown red.
+    #[arg(long, requires = "distance_to", default_value_t = 1.0)]
+    pub scale_mm: f64,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut inputs = vec![args.mesh.clone()];
     inputs.extend(args.ghost.iter().cloned());
+    inputs.extend(args.distance_to.iter().cloned());
     check_outputs(&inputs, &[output("--out", &args.out, Holds::Png)])?;
+    if !(args.scale_mm.is_finite() && args.scale_mm > 0.0) {
+        anyhow::bail!(
+            "--scale-mm must be a positive distance, got {}",
+            args.scale_mm
+        );
+    }
     let mesh = echosurf::io::read_mesh(&args.mesh)?;
+    let vertex_colours = match &args.distance_to {
+        Some(path) => {
+            let to = echosurf::io::read_mesh(path)?;
+            Some(echosurf::metrics::vertex_distance_map(&mesh, &to, args.scale_mm).1)
+        }
+        None => None,
+    };
     let ghost = match &args.ghost {
         Some(path) => Some(echosurf::io::read_mesh(path)?),
         None => None,
@@ -42,6 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         } else {
             defaults.projection
         },
+        vertex_colours,
         ..defaults
     };
     let image = render_views(&mesh, &options)?;
@@ -53,5 +75,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         image.height,
         mesh.triangles.len()
     );
+    if let Some(path) = &args.distance_to {
+        println!(
+            "coloured by distance to {}: blue 0 mm to red {} mm and beyond",
+            path.display(),
+            args.scale_mm
+        );
+    }
     Ok(())
 }

@@ -110,6 +110,55 @@ fn has_normals(mesh: &Mesh) -> bool {
 }
 
 fn write_ply(path: &Path, mesh: &Mesh) -> Result<()> {
+    write_ply_rows(path, mesh, None)
+}
+
+/// Per-vertex extras of a PLY mesh: one `float` value and an sRGB colour (`uchar red green blue`,
+/// which MeshLab, ParaView and 3D Slicer show).
+struct VertexValues<'a> {
+    name: &'a str,
+    values: &'a [f32],
+    colours: &'a [[u8; 3]],
+}
+
+/// Writes a binary PLY mesh whose vertices also carry `float NAME` and a colour, e.g. an error map
+/// (each vertex's distance to a ground truth, coloured on a scale).
+pub fn write_ply_with_vertex_values(
+    path: &Path,
+    mesh: &Mesh,
+    name: &str,
+    values: &[f32],
+    colours: &[[u8; 3]],
+) -> Result<()> {
+    let n = mesh.vertices.len();
+    if values.len() != n || colours.len() != n {
+        return Err(Error::InvalidInput(format!(
+            "{}: {} values and {} colours for {n} vertices",
+            path.display(),
+            values.len(),
+            colours.len()
+        )));
+    }
+    let reserved = ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"];
+    if !crate::io::ply::is_valid_property_name(name) || reserved.contains(&name) {
+        return Err(Error::InvalidInput(format!(
+            "{}: {name:?} cannot name a vertex value",
+            path.display()
+        )));
+    }
+    check_mesh(path, mesh)?;
+    write_ply_rows(
+        path,
+        mesh,
+        Some(VertexValues {
+            name,
+            values,
+            colours,
+        }),
+    )
+}
+
+fn write_ply_rows(path: &Path, mesh: &Mesh, extra: Option<VertexValues>) -> Result<()> {
     let normals = has_normals(mesh);
     let mut header =
         String::from("ply\nformat binary_little_endian 1.0\ncomment echosurf mesh, mm\n");
@@ -119,6 +168,12 @@ fn write_ply(path: &Path, mesh: &Mesh) -> Result<()> {
     ));
     if normals {
         header.push_str("property float nx\nproperty float ny\nproperty float nz\n");
+    }
+    if let Some(extra) = &extra {
+        header.push_str(&format!(
+            "property float {}\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n",
+            extra.name
+        ));
     }
     header.push_str(&format!(
         "element face {}\nproperty list uchar int vertex_indices\nend_header\n",
@@ -131,6 +186,10 @@ fn write_ply(path: &Path, mesh: &Mesh) -> Result<()> {
             if normals {
                 let n = mesh.normals[i];
                 write_f32s(w, &[n.x, n.y, n.z])?;
+            }
+            if let Some(extra) = &extra {
+                w.write_all(&extra.values[i].to_le_bytes())?;
+                w.write_all(&extra.colours[i])?;
             }
         }
         for t in &mesh.triangles {
@@ -692,6 +751,42 @@ mod tests {
             assert!(read_mesh(p).unwrap().normals.is_empty());
             write_mesh(p, &Mesh::default()).unwrap();
             assert_eq!(read_mesh(p).unwrap(), Mesh::default());
+        }
+    }
+
+    #[test]
+    fn vertex_values_and_colours_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let mesh = octahedron();
+        let n = mesh.vertices.len();
+        let values: Vec<f32> = (0..n).map(|i| 0.25 * i as f32).collect();
+        let colours: Vec<[u8; 3]> = (0..n).map(|i| [i as u8, 100, 255 - i as u8]).collect();
+        let path = dir.path().join("map.ply");
+        write_ply_with_vertex_values(&path, &mesh, "distance_mm", &values, &colours).unwrap();
+        // Still a mesh to every reader, with the values and colours as vertex properties.
+        assert_eq!(read_mesh(&path).unwrap(), to_f32(&mesh));
+        let cloud = crate::io::read_point_cloud(&path).unwrap();
+        assert_eq!(cloud.scalar("distance_mm").unwrap(), values.as_slice());
+        for (k, channel) in ["red", "green", "blue"].into_iter().enumerate() {
+            let got: Vec<u8> = cloud
+                .scalar(channel)
+                .unwrap()
+                .iter()
+                .map(|&c| c as u8)
+                .collect();
+            let want: Vec<u8> = colours.iter().map(|c| c[k]).collect();
+            assert_eq!(got, want, "{channel}");
+        }
+        // Wrong counts or a name that clashes: refused, nothing written.
+        let refused = dir.path().join("refused.ply");
+        for (name, values, colours) in [
+            ("distance_mm", &values[1..], colours.as_slice()),
+            ("distance_mm", values.as_slice(), &colours[1..]),
+            ("red", values.as_slice(), colours.as_slice()),
+            ("two words", values.as_slice(), colours.as_slice()),
+        ] {
+            assert!(write_ply_with_vertex_values(&refused, &mesh, name, values, colours).is_err());
+            assert!(!refused.exists());
         }
     }
 

@@ -176,6 +176,40 @@ pub fn point_to_mesh_distances(points: &[DVec3], mesh: &Mesh) -> Vec<f64> {
     distances_to(&TriangleBvh::new(mesh), points)
 }
 
+/// Colour of a distance on an error map: blue at 0, through cyan, green and yellow, to red at
+/// `scale_mm` and beyond (a non-finite distance, nothing to measure to, is grey).
+pub fn distance_colour(distance_mm: f64, scale_mm: f64) -> [u8; 3] {
+    const STOPS: [[f64; 3]; 5] = [
+        [40.0, 70.0, 200.0],
+        [40.0, 170.0, 220.0],
+        [70.0, 190.0, 90.0],
+        [240.0, 200.0, 40.0],
+        [215.0, 40.0, 40.0],
+    ];
+    if !distance_mm.is_finite() {
+        return [128, 128, 128];
+    }
+    let t = if scale_mm > 0.0 {
+        (distance_mm / scale_mm).clamp(0.0, 1.0) * (STOPS.len() - 1) as f64
+    } else {
+        (STOPS.len() - 1) as f64
+    };
+    let k = (t.floor() as usize).min(STOPS.len() - 2);
+    let f = t - k as f64;
+    std::array::from_fn(|c| (STOPS[k][c] * (1.0 - f) + STOPS[k + 1][c] * f).round() as u8)
+}
+
+/// An error map: each vertex of `mesh`'s distance to the nearest triangle of `to` (mm) and its
+/// [`distance_colour`] on `scale_mm`.
+pub fn vertex_distance_map(mesh: &Mesh, to: &Mesh, scale_mm: f64) -> (Vec<f64>, Vec<[u8; 3]>) {
+    let distances = point_to_mesh_distances(&mesh.vertices, to);
+    let colours = distances
+        .iter()
+        .map(|&d| distance_colour(d, scale_mm))
+        .collect();
+    (distances, colours)
+}
+
 /// Chunk size for parallel work: results are concatenated per chunk in order (deterministic).
 const CHUNK: usize = 4096;
 
@@ -492,6 +526,41 @@ mod tests {
         let c = compare_meshes(&inner, &far, &fast_options()).unwrap();
         assert_eq!(c.completeness_1mm, 0.0);
         assert!((c.hausdorff_mm - 1.5).abs() <= tol, "{c:?}");
+    }
+
+    #[test]
+    fn error_map_colours_each_vertex_by_its_distance() {
+        // Vertices of a sphere 0.5 mm outside another: each lies 0.5 mm from it, less the inner
+        // mesh's faceting (its sagitta) and never more.
+        let (r, gap) = (10.0, 0.5);
+        let inner = icosphere(DVec3::ZERO, r, 4);
+        let outer = icosphere(DVec3::ZERO, r + gap, 4);
+        let (distances, colours) = vertex_distance_map(&outer, &inner, 1.0);
+        assert_eq!(
+            (distances.len(), colours.len()),
+            (outer.vertices.len(), outer.vertices.len())
+        );
+        for (&d, &c) in distances.iter().zip(&colours) {
+            assert!((gap - 1e-9..gap + 0.05).contains(&d), "{d}");
+            assert_eq!(c, distance_colour(d, 1.0));
+        }
+        // The ramp: blue at 0, green half-way, red at the scale and beyond, grey for no distance.
+        assert_eq!(distance_colour(0.0, 1.0), [40, 70, 200]);
+        assert_eq!(distance_colour(0.5, 1.0), [70, 190, 90]);
+        assert_eq!(distance_colour(1.0, 1.0), [215, 40, 40]);
+        assert_eq!(distance_colour(7.0, 1.0), [215, 40, 40]);
+        assert_eq!(distance_colour(f64::INFINITY, 1.0), [128, 128, 128]);
+        assert_eq!(distance_colour(0.25, 0.5), distance_colour(0.5, 1.0));
+        // Red grows and blue falls from the middle of the scale on.
+        let ramp: Vec<[u8; 3]> = (0..=20)
+            .map(|k| distance_colour(k as f64 * 0.05, 1.0))
+            .collect();
+        for w in ramp[10..].windows(2) {
+            assert!(w[1][2] <= w[0][2], "{ramp:?}");
+        }
+        for w in ramp[..16].windows(2) {
+            assert!(w[1][0] >= w[0][0], "{ramp:?}");
+        }
     }
 
     #[test]
