@@ -249,10 +249,12 @@ pub fn write_png(path: &Path, image: &RgbImage) -> Result<()> {
     )
 }
 
+/// A triangle's corners and per-corner unit normals (vertex normals, or the face normal three times).
+type ShadedTriangle = ([DVec3; 3], [DVec3; 3]);
+
 /// Triangles with their corners and shading normals gathered once for all views.
 struct Surface {
-    /// Corners, and per-corner unit normals (vertex normals, or the face normal three times).
-    triangles: Vec<([DVec3; 3], [DVec3; 3])>,
+    triangles: Vec<ShadedTriangle>,
     /// Per-corner linear colours, parallel to `triangles`, when the vertices have colours.
     corner_colours: Option<Vec<[[f32; 3]; 3]>>,
 }
@@ -269,7 +271,7 @@ impl Surface {
     fn with_colours(mesh: &Mesh, colours: Option<&[[u8; 3]]>) -> Self {
         let n = mesh.vertices.len();
         let smooth = mesh.normals.len() == n;
-        let kept: Vec<(&[u32; 3], ([DVec3; 3], [DVec3; 3]))> = mesh
+        let kept: Vec<(&[u32; 3], ShadedTriangle)> = mesh
             .triangles
             .iter()
             .filter(|t| t.iter().all(|&i| (i as usize) < n))
