@@ -441,6 +441,92 @@ impl Mesh {
         removed.len()
     }
 
+    /// Peels up to `rings` rings of triangles off the rim (the edges with one triangle) without changing
+    /// the topology: no piece is cut, pinched or removed. The rim of a surface is where its echo fades
+    /// and the least accurate part of it. Per ring, in triangle order, a triangle with a rim edge goes if
+    /// its third vertex is not on the rim (an ear of one edge: the rim moves in past that vertex) or if
+    /// it has two rim edges (a corner: its tip vertex goes); a triangle that would cut a neck (third
+    /// vertex already on the rim) or whose removal would delete a piece (three rim edges) stays. Returns
+    /// the triangles removed.
+    pub fn trim_rim(&mut self, rings: usize) -> usize {
+        use std::collections::HashMap;
+        let n = self.vertices.len();
+        if rings == 0
+            || self
+                .triangles
+                .iter()
+                .any(|t| t.iter().any(|&i| i as usize >= n))
+        {
+            return 0;
+        }
+        let key = |a: u32, b: u32| (a.min(b), a.max(b));
+        let edges_of = |t: [u32; 3]| [(t[0], t[1], t[2]), (t[1], t[2], t[0]), (t[2], t[0], t[1])];
+        // Triangles per edge, and rim edges per vertex, kept current as triangles go.
+        let mut per_edge: HashMap<(u32, u32), u32> =
+            HashMap::with_capacity(self.triangles.len() * 2);
+        for &t in &self.triangles {
+            for (a, b, _) in edges_of(t) {
+                *per_edge.entry(key(a, b)).or_default() += 1;
+            }
+        }
+        let mut rim_edges_at = vec![0u32; n];
+        for (&(a, b), &count) in &per_edge {
+            if count == 1 {
+                rim_edges_at[a as usize] += 1;
+                rim_edges_at[b as usize] += 1;
+            }
+        }
+        let mut keep = vec![true; self.triangles.len()];
+        let mut removed = 0;
+        for _ in 0..rings {
+            let ring: Vec<usize> = (0..self.triangles.len())
+                .filter(|&f| {
+                    keep[f]
+                        && edges_of(self.triangles[f])
+                            .iter()
+                            .any(|&(a, b, _)| per_edge[&key(a, b)] == 1)
+                })
+                .collect();
+            let before = removed;
+            for f in ring {
+                let t = self.triangles[f];
+                let rim: Vec<(u32, u32, u32)> = edges_of(t)
+                    .into_iter()
+                    .filter(|&(a, b, _)| per_edge[&key(a, b)] == 1)
+                    .collect();
+                let peelable = match rim.as_slice() {
+                    [(_, _, opposite)] => rim_edges_at[*opposite as usize] == 0,
+                    [_, _] => true,
+                    _ => false,
+                };
+                if !peelable {
+                    continue;
+                }
+                keep[f] = false;
+                removed += 1;
+                for (a, b, _) in edges_of(t) {
+                    let count = per_edge
+                        .get_mut(&key(a, b))
+                        .expect("edge of a kept triangle");
+                    *count -= 1;
+                    // 2 -> 1: the edge joins the rim; 1 -> 0: it leaves with the triangle.
+                    for v in [a, b] {
+                        match *count {
+                            1 => rim_edges_at[v as usize] += 1,
+                            0 => rim_edges_at[v as usize] -= 1,
+                            _ => {}
+                        }
+                    }
+                }
+            }
+            if removed == before {
+                break;
+            }
+        }
+        self.retain_triangles(&keep);
+        removed
+    }
+
     /// Keeps the triangles whose flag in `keep` (one per triangle) is set, and the vertices they use
     /// (renumbered in order of first use). Returns the triangles removed.
     pub fn retain_triangles(&mut self, keep: &[bool]) -> usize {
@@ -1058,6 +1144,79 @@ mod tests {
         assert_eq!(mesh.topology().boundary_edges, 24);
         assert!((mesh.area_mm2() - 36.0).abs() < 1e-12);
         assert_eq!(mesh.fill_small_holes(100.0), 0);
+    }
+
+    #[test]
+    fn trimming_the_rim_peels_rings_and_never_cuts_or_removes_a_piece() {
+        // A 6 x 6 grid: the first ring takes the 20 edge squares' rim triangles and the corners' tips.
+        let mut grid = grid_with_holes(6, &[]);
+        let before = grid.topology();
+        let removed = grid.trim_rim(1);
+        let after = grid.topology();
+        assert!(removed > 0 && after.is_oriented_manifold(), "{after:?}");
+        assert_eq!(
+            (after.components, after.euler_characteristic),
+            (before.components, before.euler_characteristic)
+        );
+        assert_eq!(grid.triangles.len(), 72 - removed);
+        assert_eq!(grid.normals.len(), grid.vertices.len());
+        // A ring is the triangles on the rim when it starts: on this triangulation one of each
+        // edge square's two, so the old outer vertices go with the second ring (the other triangle,
+        // then a corner with two rim edges), but for the few a neck-check keeps.
+        let mut twice = grid_with_holes(6, &[]);
+        twice.trim_rim(2);
+        assert_eq!(twice.topology().euler_characteristic, 1);
+        let on_old_edge = twice
+            .vertices
+            .iter()
+            .filter(|v| v.x == 0.0 || v.y == 0.0 || v.x == 6.0 || v.y == 6.0)
+            .count();
+        assert!(
+            on_old_edge < 24 / 2,
+            "{on_old_edge} of 24 outer vertices left"
+        );
+        // More rings keep peeling, never past one piece.
+        let mut deep = grid_with_holes(6, &[]);
+        deep.trim_rim(50);
+        let t = deep.topology();
+        assert!(
+            t.components == 1 && t.euler_characteristic == 1 && t.triangles >= 1,
+            "{t:?}"
+        );
+
+        // Two squares joined by a strip one square wide: the strip's rim triangles each have their
+        // third vertex on the other rim, so it stays, and the piece stays one.
+        let dumbbell = {
+            let mut holes = Vec::new();
+            for j in 0..7 {
+                for i in 0..7 {
+                    let in_left = i < 3 && (2..5).contains(&j);
+                    let in_right = i >= 4 && (2..5).contains(&j);
+                    let in_neck = i == 3 && j == 3;
+                    if !(in_left || in_right || in_neck) {
+                        holes.push((i, j));
+                    }
+                }
+            }
+            grid_with_holes(7, &holes)
+        };
+        let mut m = dumbbell.clone();
+        assert_eq!(m.topology().components, 1);
+        m.trim_rim(3);
+        let t = m.topology();
+        assert_eq!((t.components, t.euler_characteristic), (1, 1), "{t:?}");
+        assert!(m.triangles.len() < dumbbell.triangles.len());
+
+        // A lone triangle is never removed, and zero rings change nothing.
+        let mut lone = Mesh {
+            vertices: vec![DVec3::ZERO, DVec3::X, DVec3::Y],
+            normals: vec![],
+            triangles: vec![[0, 1, 2]],
+        };
+        assert_eq!(lone.trim_rim(5), 0);
+        let mut same = dumbbell.clone();
+        assert_eq!(same.trim_rim(0), 0);
+        assert_eq!(same, dumbbell);
     }
 
     #[test]

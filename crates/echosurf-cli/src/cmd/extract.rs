@@ -105,6 +105,10 @@ pub struct Args {
     /// other and facing alike, and close the seam between them; 0 joins nothing.
     #[arg(long, default_value_t = pipeline::DEFAULT_BRIDGE_GAP_MM)]
     pub bridge_gap: f64,
+    /// Peel this many rings of triangles off each piece's rim, never cutting or removing a piece: the
+    /// rims are the least accurate part of the surface. 0 keeps them.
+    #[arg(long, default_value_t = 0, value_name = "RINGS")]
+    pub trim_rim: usize,
     /// Seed of the random decimation (and of everything else random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -273,7 +277,16 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
             if n == 1 { "" } else { "s" }
         ),
     };
-    why + &weak + &unbacked + &bridged
+    let trimmed = match used.rim_triangles_trimmed {
+        0 => String::new(),
+        n => format!(
+            ", {n} rim triangle{} trimmed ({} ring{})",
+            if n == 1 { "" } else { "s" },
+            used.trim_rim_rings,
+            if used.trim_rim_rings == 1 { "" } else { "s" }
+        ),
+    };
+    why + &weak + &unbacked + &bridged + &trimmed
 }
 
 pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
@@ -355,6 +368,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             reach_mm: args.ridge_weak_reach,
         },
         min_echo_frames: args.min_echo_frames,
+        trim_rim_rings: args.trim_rim,
         bridge_gap_mm: if args.bridge_gap.is_finite() && args.bridge_gap >= 0.0 {
             args.bridge_gap
         } else {

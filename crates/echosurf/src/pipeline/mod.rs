@@ -81,6 +81,11 @@ pub struct ExtractOptions {
     /// other where they continue one another are joined and the seam between them closed
     /// ([`Mesh::bridge_near_pieces`]). 0 joins nothing.
     pub bridge_gap_mm: f64,
+    /// Last, this many rings of triangles are peeled off each piece's rim without cutting or removing
+    /// a piece ([`Mesh::trim_rim`]): the rims are the least accurate part of a sheet (where its echo
+    /// fades). 0, the default, keeps them: a ring costs completeness where walls turn from the beam
+    /// (docs/pipeline.md, "Trimming the rims").
+    pub trim_rim_rings: usize,
     /// Which surface to output: the iso-surface itself, or one sheet on each echo's ridge.
     pub sheet: Sheet,
     /// How the echo-ridge sheet is smoothed through the ridge points (`Sheet::EchoRidge` only).
@@ -111,6 +116,7 @@ impl Default for ExtractOptions {
             echo_margin_mm: Some(DEFAULT_ECHO_MARGIN_MM),
             min_echo_frames: DEFAULT_MIN_ECHO_FRAMES,
             bridge_gap_mm: DEFAULT_BRIDGE_GAP_MM,
+            trim_rim_rings: 0,
             sheet: Sheet::Auto,
             echo_sheet: SheetOptions::default(),
             weak_echoes: WeakEchoes::default(),
@@ -253,6 +259,9 @@ pub struct SheetUsed {
     /// gaps ([`Mesh::bridge_near_pieces`]); each joins two pieces into one.
     pub bridge_gap_mm: f64,
     pub bridged_pieces: usize,
+    /// Rings peeled off the rims (0: none), and the triangles that went ([`Mesh::trim_rim`]).
+    pub trim_rim_rings: usize,
+    pub rim_triangles_trimmed: usize,
 }
 
 impl SheetUsed {
@@ -268,6 +277,8 @@ impl SheetUsed {
             pieces_without_echoes: 0,
             bridge_gap_mm: 0.0,
             bridged_pieces: 0,
+            trim_rim_rings: 0,
+            rim_triangles_trimmed: 0,
         }
     }
 }
@@ -916,7 +927,7 @@ fn move_onto_echo_ridges(
 }
 
 /// Removes small pieces, then pieces too few frames echo, then joins the pieces left that continue one
-/// another across small gaps.
+/// another across small gaps, then (if asked) trims the rims.
 fn remove_and_join_pieces(
     meshes: &mut [Mesh],
     sheets: &mut [SheetUsed],
@@ -953,6 +964,10 @@ fn remove_and_join_pieces(
         if options.bridge_gap_mm.is_finite() && options.bridge_gap_mm > 0.0 {
             used.bridge_gap_mm = options.bridge_gap_mm;
             used.bridged_pieces = mesh.bridge_near_pieces(options.bridge_gap_mm);
+        }
+        if options.trim_rim_rings > 0 {
+            used.trim_rim_rings = options.trim_rim_rings;
+            used.rim_triangles_trimmed = mesh.trim_rim(options.trim_rim_rings);
         }
     }
 }
