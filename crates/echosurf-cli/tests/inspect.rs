@@ -5,6 +5,9 @@ use std::process::{Command, Output};
 #[path = "../../echosurf/tests/common/real_data.rs"]
 mod real_data;
 use real_data::real;
+#[path = "../../echosurf/tests/common/grey_png.rs"]
+mod grey_png;
+use grey_png::read_grey_png;
 
 const NN_MEAN: &str = "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml";
 
@@ -229,17 +232,6 @@ fn frames_in_one_plane_are_pointed_out() {
     );
 }
 
-/// Decodes an 8-bit grey PNG: (width, height, pixels).
-fn grey_png(path: &std::path::Path) -> (u32, u32, Vec<u8>) {
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
-    let mut reader = decoder.read_info().unwrap();
-    let mut buf = vec![0u8; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).unwrap();
-    assert_eq!(info.color_type, png::ColorType::Grayscale);
-    buf.truncate(info.buffer_size());
-    (info.width, info.height, buf)
-}
-
 #[test]
 fn a_frame_is_written_to_draw_the_first_band_on() {
     let dir = tempfile::tempdir().unwrap();
@@ -269,7 +261,7 @@ fn a_frame_is_written_to_draw_the_first_band_on() {
         text.contains("frames      21") && text.contains("frame 0 written"),
         "{text}"
     );
-    let (w, h, grey) = grey_png(&first);
+    let (w, h, grey) = read_grey_png(&first);
     assert_eq!((w, h), (820, 616));
     assert_eq!(grey, pixels[..frame_len]);
 
@@ -291,7 +283,10 @@ fn a_frame_is_written_to_draw_the_first_band_on() {
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["frames"], 21);
     assert!(String::from_utf8_lossy(&out.stderr).contains("frame 20 written"));
-    assert_eq!(grey_png(&last).2, pixels[20 * frame_len..21 * frame_len]);
+    assert_eq!(
+        read_grey_png(&last).2,
+        pixels[20 * frame_len..21 * frame_len]
+    );
 
     // A frame that is not there: refused before anything is printed or written.
     let none = dir.path().join("none.png");

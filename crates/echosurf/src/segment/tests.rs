@@ -663,16 +663,9 @@ fn a_band_that_follows_what_it_holds_never_takes_in_a_second_echo() {
     assert_eq!(following.parameters.band_radius_outside_px, 0.0);
 }
 
-/// Decodes an 8-bit grey PNG: (width, height, pixels).
-fn read_grey_png(path: &std::path::Path) -> (u32, u32, Vec<u8>) {
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
-    let mut reader = decoder.read_info().unwrap();
-    let mut buf = vec![0u8; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).unwrap();
-    assert_eq!(info.color_type, png::ColorType::Grayscale);
-    buf.truncate(info.buffer_size());
-    (info.width, info.height, buf)
-}
+#[path = "../../tests/common/grey_png.rs"]
+mod grey_png;
+use grey_png::read_grey_png;
 
 #[test]
 fn a_frame_is_written_pixel_for_pixel_to_draw_on() {
