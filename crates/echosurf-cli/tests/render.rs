@@ -81,7 +81,10 @@ fn distance_to_a_truth_colours_the_picture() {
             "{}",
             String::from_utf8_lossy(&run.stderr)
         );
-        assert!(String::from_utf8_lossy(&run.stdout).contains("coloured by distance to"));
+        let said = String::from_utf8_lossy(&run.stdout);
+        assert!(said.contains("coloured by distance to"), "{said}");
+        // 200 px wide: the views' 200 x 200, and the colour bar's strip of 24 px under them.
+        assert!(said.contains("(200 x 224 px"), "{said}");
     }
     // Pixels clearly red, and pixels clearly green.
     let counts = |path: &std::path::Path| {
@@ -90,7 +93,8 @@ fn distance_to_a_truth_colours_the_picture() {
         let mut reader = decoder.read_info().unwrap();
         let mut buf = vec![0u8; reader.output_buffer_size()];
         let info = reader.next_frame(&mut buf).unwrap();
-        buf.truncate(info.buffer_size());
+        // The views only: a coloured picture has its colour bar in a strip below them.
+        buf.truncate(3 * (info.width * info.width) as usize);
         let (mut red, mut green) = (0, 0);
         for p in buf.chunks_exact(3) {
             let [r, g, b] = [p[0] as u32, p[1] as u32, p[2] as u32];

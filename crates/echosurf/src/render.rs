@@ -103,6 +103,16 @@ pub struct RenderOptions {
     /// One sRGB colour per mesh vertex (an error map), instead of `mesh_colour`; back faces show it
     /// darkened.
     pub vertex_colours: Option<Vec<[u8; 3]>>,
+    /// A colour scale drawn in a strip under the views (the key to `vertex_colours`).
+    pub colour_bar: Option<ColourBar>,
+}
+
+/// The key to a colour map: its colours from left to right, and labels at positions along it (0 = left
+/// end, 1 = right end). Labels use digits, `.`, `-`, `>`, `m` and spaces.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ColourBar {
+    pub colours: Vec<[u8; 3]>,
+    pub labels: Vec<(f64, String)>,
 }
 
 impl Default for RenderOptions {
@@ -123,6 +133,7 @@ impl Default for RenderOptions {
             ghost_opacity: 0.35,
             axes: true,
             vertex_colours: None,
+            colour_bar: None,
         }
     }
 }
@@ -217,11 +228,91 @@ pub fn render_views(mesh: &Mesh, options: &RenderOptions) -> Result<RgbImage> {
             pixels[i..i + 3].copy_from_slice(&separator);
         }
     }
-    Ok(RgbImage {
+    let mut image = RgbImage {
         width,
         height,
         pixels,
-    })
+    };
+    if let Some(bar) = &options.colour_bar {
+        append_colour_bar(&mut image, bar);
+    }
+    Ok(image)
+}
+
+/// 5 x 7 glyphs (rows top down, bit 4 = left column) for the colour bar's labels.
+fn glyph(c: char) -> [u8; 7] {
+    match c {
+        '0' => [14, 17, 19, 21, 25, 17, 14],
+        '1' => [4, 12, 4, 4, 4, 4, 14],
+        '2' => [14, 17, 1, 2, 4, 8, 31],
+        '3' => [31, 2, 4, 2, 1, 17, 14],
+        '4' => [2, 6, 10, 18, 31, 2, 2],
+        '5' => [31, 16, 30, 1, 1, 17, 14],
+        '6' => [6, 8, 16, 30, 17, 17, 14],
+        '7' => [31, 1, 2, 4, 8, 8, 8],
+        '8' => [14, 17, 17, 14, 17, 17, 14],
+        '9' => [14, 17, 17, 15, 1, 2, 12],
+        '.' => [0, 0, 0, 0, 0, 12, 12],
+        '-' => [0, 0, 0, 31, 0, 0, 0],
+        '>' => [16, 8, 4, 2, 4, 8, 16],
+        'm' => [0, 0, 26, 21, 21, 17, 17],
+        _ => [0; 7],
+    }
+}
+
+/// Adds a strip under `image` with the bar's colours across the middle 80 % of the width, a tick under
+/// each label's position and the label centred below it.
+fn append_colour_bar(image: &mut RgbImage, bar: &ColourBar) {
+    if bar.colours.is_empty() {
+        return;
+    }
+    let width = image.width as usize;
+    let k = (width / 400).max(1); // text and bar scale, in pixels per font pixel
+    let (bar_top, bar_height, tick, text_top) = (4 * k, 6 * k, 2 * k, 14 * k);
+    let strip = text_top + 10 * k;
+    let mut pixels = vec![0u8; width * strip * 3];
+    for px in pixels.chunks_exact_mut(3) {
+        px.copy_from_slice(&[18, 20, 26]);
+    }
+    let mut put = |x: usize, y: usize, c: [u8; 3]| {
+        if x < width && y < strip {
+            pixels[3 * (y * width + x)..3 * (y * width + x) + 3].copy_from_slice(&c);
+        }
+    };
+    let (x0, x1) = (width / 10, width - width / 10);
+    let span = (x1 - x0).max(1);
+    for x in x0..x1 {
+        let i = ((x - x0) * bar.colours.len() / span).min(bar.colours.len() - 1);
+        for y in bar_top..bar_top + bar_height {
+            put(x, y, bar.colours[i]);
+        }
+    }
+    let text = [220, 224, 232];
+    for (at, label) in &bar.labels {
+        let x = x0 + (at.clamp(0.0, 1.0) * (span - 1) as f64).round() as usize;
+        for y in bar_top + bar_height..bar_top + bar_height + tick {
+            for dx in 0..k {
+                put(x + dx, y, text);
+            }
+        }
+        let label_width = label.chars().count() * 6 * k;
+        let left = x
+            .saturating_sub(label_width / 2)
+            .min(width.saturating_sub(label_width));
+        for (n, c) in label.chars().enumerate() {
+            for (row, bits) in glyph(c).into_iter().enumerate() {
+                for col in 0..5 {
+                    if bits & (16 >> col) != 0 {
+                        for (dx, dy) in (0..k).flat_map(|dx| (0..k).map(move |dy| (dx, dy))) {
+                            put(left + (6 * n + col) * k + dx, text_top + row * k + dy, text);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    image.height += strip as u32;
+    image.pixels.extend_from_slice(&pixels);
 }
 
 /// Encodes an image as an 8-bit RGB PNG (deterministic bytes).
@@ -931,6 +1022,44 @@ mod tests {
         };
         let err = render_views(&square, &short).unwrap_err().to_string();
         assert!(err.contains("3 vertex colours for 4 vertices"), "{err}");
+    }
+
+    #[test]
+    fn a_colour_bar_is_drawn_under_the_views_with_its_labels() {
+        let (blue, red) = ([0, 0, 255], [255, 0, 0]);
+        let bar = ColourBar {
+            colours: vec![blue, red],
+            labels: vec![(0.0, "0".into()), (1.0, "1 mm".into())],
+        };
+        let ball = icosphere(DVec3::ZERO, 10.0, 2);
+        let plain = render_views(&ball, &small()).unwrap();
+        let keyed = render_views(
+            &ball,
+            &RenderOptions {
+                colour_bar: Some(bar),
+                ..small()
+            },
+        )
+        .unwrap();
+        // 160 px wide: one font pixel per pixel, a strip of 24 rows; the views above are unchanged.
+        assert_eq!((keyed.width, keyed.height), (160, plain.height + 24));
+        assert_eq!(keyed.pixels[..plain.pixels.len()], plain.pixels[..]);
+        let y = plain.height + 6;
+        assert_eq!(keyed.pixel(16, y), blue, "left end");
+        assert_eq!(keyed.pixel(143, y), red, "right end");
+        assert_eq!(keyed.pixel(5, y), [18, 20, 26], "margin");
+        // Label text (light grey) under each end, none in the middle.
+        let text_in = |x0: u32, x1: u32| {
+            (x0..x1)
+                .flat_map(|x| (plain.height + 14..plain.height + 21).map(move |y| (x, y)))
+                .filter(|&(x, y)| keyed.pixel(x, y) == [220, 224, 232])
+                .count()
+        };
+        assert!(
+            text_in(10, 25) > 5 && text_in(125, 160) > 20,
+            "labels drawn"
+        );
+        assert_eq!(text_in(40, 110), 0);
     }
 
     #[test]

@@ -105,6 +105,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             vertex_colours: Some(
                 echosurf::metrics::vertex_distance_map(&surface.mesh, &truth, ERROR_MAP_SCALE_MM).1,
             ),
+            colour_bar: Some(echosurf::metrics::distance_colour_bar(ERROR_MAP_SCALE_MM)),
             ..echosurf::render::RenderOptions::default()
         },
     )?;

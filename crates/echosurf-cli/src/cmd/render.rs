@@ -63,6 +63,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         } else {
             defaults.projection
         },
+        colour_bar: vertex_colours
+            .as_ref()
+            .map(|_| echosurf::metrics::distance_colour_bar(args.scale_mm)),
         vertex_colours,
         ..defaults
     };
