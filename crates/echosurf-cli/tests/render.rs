@@ -4,6 +4,9 @@ use std::process::Command;
 
 use echosurf::metrics::shapes::torus;
 
+#[path = "../../echosurf/tests/common/real_data.rs"]
+mod real_data;
+
 #[test]
 fn render_writes_a_deterministic_png_of_the_requested_size() {
     let dir = tempfile::tempdir().unwrap();
@@ -123,4 +126,90 @@ fn distance_to_a_truth_colours_the_picture() {
     let out = render(&["--scale-mm", "2"], &dir.path().join("x.png"));
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--distance-to"));
+}
+
+/// `--sequence` draws the frames' outlines (yellow) where the recording's poses put them.
+#[test]
+fn frame_outlines_of_a_recording_are_drawn_over_the_mesh() {
+    use echosurf::io;
+    let spine = real_data::real("SpinePhantomFreehand.igs.mha");
+    let config = real_data::real("PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml");
+    // A ball in the middle of the swept volume, in the world frame `extract` writes meshes in.
+    let sequence = io::read_sequence(&spine).unwrap();
+    let calibration = io::read_calibration(&config).unwrap();
+    let poses = io::resolve_poses(
+        &sequence,
+        Some(&calibration),
+        io::ReferenceChoice::Auto,
+        &spine,
+    )
+    .unwrap();
+    let (lo, hi) = io::world_bounds(&sequence, &poses.poses).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = dir.path().join("ball.ply");
+    io::write_mesh(
+        &mesh,
+        &echosurf::metrics::shapes::icosphere((lo + hi) / 2.0, 5.0, 2),
+    )
+    .unwrap();
+    let yellow_pixels = |extra: &[&str]| {
+        let out_png = dir.path().join("view.png");
+        let run = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+            .args(["render", mesh.to_str().unwrap(), "--size", "200", "--out"])
+            .arg(&out_png)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let decoder = png::Decoder::new(std::io::BufReader::new(
+            std::fs::File::open(&out_png).unwrap(),
+        ));
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0u8; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        buf.truncate(info.buffer_size());
+        buf.chunks_exact(3)
+            .filter(|p| p[0] > 150 && p[1] > 110 && p[2] < 90)
+            .count()
+    };
+    let (spine_arg, config_arg) = (spine.to_str().unwrap(), config.to_str().unwrap());
+    let without = yellow_pixels(&[]);
+    let every_8th = yellow_pixels(&["--sequence", spine_arg, "--config", config_arg]);
+    let every_frame = yellow_pixels(&[
+        "--sequence",
+        spine_arg,
+        "--config",
+        config_arg,
+        "--outline-every",
+        "1",
+    ]);
+    assert!(
+        every_8th > without + 300 && every_frame > every_8th,
+        "{without} / {every_8th} / {every_frame}"
+    );
+
+    // The sequence's options mean nothing without it; no frame at all is refused.
+    for (extra, says) in [
+        (vec!["--config", config_arg], "--sequence"),
+        (vec!["--outline-every", "2"], "--sequence"),
+        (
+            vec!["--sequence", spine_arg, "--outline-every", "0"],
+            "--outline-every",
+        ),
+    ] {
+        let run = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+            .args(["render", mesh.to_str().unwrap(), "--out"])
+            .arg(dir.path().join("bad.png"))
+            .args(&extra)
+            .output()
+            .unwrap();
+        assert!(!run.status.success(), "{extra:?}");
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert!(err.contains(says), "{extra:?}: {err}");
+    }
+    assert!(!dir.path().join("bad.png").exists());
 }

@@ -431,6 +431,23 @@ pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> 
 }
 
 /// Renders all surfaces (merged) with the frame outlines, optionally over a ghost of the truth.
+/// Every 8th frame's outline is enough to show the sweep without hiding the surface.
+pub(crate) const PREVIEW_OUTLINE_EVERY: usize = 8;
+
+/// The outlines of every `every`-th frame, from the four segments per frame of
+/// `pipeline::frame_outlines`.
+pub(crate) fn every_nth_outline(
+    outlines: &[[glam::DVec3; 2]],
+    every: usize,
+) -> Vec<[glam::DVec3; 2]> {
+    outlines
+        .chunks(4)
+        .step_by(every.max(1))
+        .flatten()
+        .copied()
+        .collect()
+}
+
 pub fn write_preview(
     path: &Path,
     output: &ExtractOutput,
@@ -451,16 +468,8 @@ pub fn write_preview(
         eprintln!("warning: no surface to render; preview not written");
         return Ok(());
     }
-    // Every 8th frame's outline is enough to show the sweep without hiding the surface.
-    let frames = output
-        .frame_outlines
-        .chunks(4)
-        .step_by(8)
-        .flatten()
-        .copied()
-        .collect();
     let options = RenderOptions {
-        overlay_lines: frames,
+        overlay_lines: every_nth_outline(&output.frame_outlines, PREVIEW_OUTLINE_EVERY),
         ghost,
         ..RenderOptions::default()
     };

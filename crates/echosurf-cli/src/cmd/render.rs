@@ -29,13 +29,34 @@ pub struct Args {
     /// With --distance-to: the distance (mm) shown red.
     #[arg(long, requires = "distance_to", default_value_t = 1.0)]
     pub scale_mm: f64,
+    /// Draw the outlines of this tracked sequence's frames over the mesh (every --outline-every-th
+    /// frame), where its poses put them: the mesh must be in the sequence's world frame, as `extract`
+    /// writes it.
+    #[arg(long)]
+    pub sequence: Option<PathBuf>,
+    /// PLUS device-set XML of the sequence (Image->Probe calibration, clip rectangle).
+    #[arg(long, requires = "sequence")]
+    pub config: Option<PathBuf>,
+    /// World frame of the sequence's poses, as in `extract`: auto, tracker or reference.
+    #[arg(long, requires = "sequence", default_value = "auto")]
+    pub world: String,
+    /// With --sequence: outline every this-many-th frame.
+    #[arg(long, requires = "sequence", default_value_t = super::extract::PREVIEW_OUTLINE_EVERY)]
+    pub outline_every: usize,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut inputs = vec![args.mesh.clone()];
     inputs.extend(args.ghost.iter().cloned());
     inputs.extend(args.distance_to.iter().cloned());
+    if let Some(sequence) = &args.sequence {
+        inputs.extend(echosurf::io::sequence_files(sequence));
+    }
+    inputs.extend(args.config.iter().cloned());
     check_outputs(&inputs, &[output("--out", &args.out, Holds::Png)])?;
+    if args.outline_every == 0 {
+        anyhow::bail!("--outline-every must be at least 1");
+    }
     if !(args.scale_mm.is_finite() && args.scale_mm > 0.0) {
         anyhow::bail!(
             "--scale-mm must be a positive distance, got {}",
@@ -54,6 +75,26 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(path) => Some(echosurf::io::read_mesh(path)?),
         None => None,
     };
+    let overlay_lines = match &args.sequence {
+        Some(path) => {
+            let sequence = echosurf::io::read_sequence(path)?;
+            let calibration = args
+                .config
+                .as_deref()
+                .map(echosurf::io::read_calibration)
+                .transpose()?;
+            let poses = echosurf::io::resolve_poses(
+                &sequence,
+                calibration.as_ref(),
+                super::extract::world_choice(&args.world)?,
+                path,
+            )?;
+            let outlines =
+                echosurf::pipeline::frame_outlines(&sequence, &poses, calibration.as_ref());
+            super::extract::every_nth_outline(&outlines, args.outline_every)
+        }
+        None => Vec::new(),
+    };
     let defaults = RenderOptions::default();
     let options = RenderOptions {
         size_px: args.size,
@@ -67,6 +108,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .as_ref()
             .map(|_| echosurf::metrics::distance_colour_bar(args.scale_mm)),
         vertex_colours,
+        overlay_lines,
         ..defaults
     };
     let image = render_views(&mesh, &options)?;
