@@ -136,18 +136,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let swept = match &args.sequence {
         None => None,
         Some(path) => {
-            let sequence = io::read_sequence(path)?;
-            let calibration = args
-                .config
-                .as_deref()
-                .map(io::read_calibration)
-                .transpose()?;
-            let poses = io::resolve_poses(
-                &sequence,
-                calibration.as_ref(),
-                super::extract::world_choice(&args.world)?,
-                path,
-            )?;
+            let (sequence, calibration, poses) =
+                super::extract::posed_sequence(path, args.config.as_deref(), &args.world)?;
             let image_to_world: Vec<_> = poses.poses.iter().map(|p| p.image_to_world).collect();
             let score = SweptFacingTruth::new(
                 &truth,

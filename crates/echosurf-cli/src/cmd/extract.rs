@@ -289,6 +289,23 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
     why + &weak + &unbacked + &bridged + &trimmed
 }
 
+/// A tracked sequence given to score or draw a mesh against (`compare --sequence`, `render
+/// --sequence`): the sequence, its calibration if given, and where its frames are in `world`.
+pub(crate) fn posed_sequence(
+    path: &Path,
+    config: Option<&Path>,
+    world: &str,
+) -> anyhow::Result<(
+    io::TrackedSequence,
+    Option<io::Calibration>,
+    io::PoseResolution,
+)> {
+    let sequence = io::read_sequence(path)?;
+    let calibration = config.map(io::read_calibration).transpose()?;
+    let poses = io::resolve_poses(&sequence, calibration.as_ref(), world_choice(world)?, path)?;
+    Ok((sequence, calibration, poses))
+}
+
 pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
     Ok(match text.to_ascii_lowercase().as_str() {
         "auto" => ReferenceChoice::Auto,

@@ -77,18 +77,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let overlay_lines = match &args.sequence {
         Some(path) => {
-            let sequence = echosurf::io::read_sequence(path)?;
-            let calibration = args
-                .config
-                .as_deref()
-                .map(echosurf::io::read_calibration)
-                .transpose()?;
-            let poses = echosurf::io::resolve_poses(
-                &sequence,
-                calibration.as_ref(),
-                super::extract::world_choice(&args.world)?,
-                path,
-            )?;
+            let (sequence, calibration, poses) =
+                super::extract::posed_sequence(path, args.config.as_deref(), &args.world)?;
             let outlines =
                 echosurf::pipeline::frame_outlines(&sequence, &poses, calibration.as_ref());
             super::extract::every_nth_outline(&outlines, args.outline_every)
