@@ -213,3 +213,71 @@ fn frame_outlines_of_a_recording_are_drawn_over_the_mesh() {
     }
     assert!(!dir.path().join("bad.png").exists());
 }
+
+/// A PLY whose vertices carry colours (an error map from `compare --error-map`) is drawn in them;
+/// `--plain` draws the mesh colour instead.
+#[test]
+fn a_coloured_ply_is_drawn_in_its_colours() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mesh, truth, map) = (
+        dir.path().join("mesh.ply"),
+        dir.path().join("truth.ply"),
+        dir.path().join("map.ply"),
+    );
+    echosurf::io::write_mesh(&mesh, &torus(20.0, 6.0, 64, 32)).unwrap();
+    echosurf::io::write_mesh(&truth, &torus(20.0, 5.0, 64, 32)).unwrap();
+    let run = |args: &[&std::ffi::OsStr]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    // 1 mm apart everywhere: red on the default 1 mm scale.
+    run(&[
+        "compare".as_ref(),
+        mesh.as_os_str(),
+        truth.as_os_str(),
+        "--error-map".as_ref(),
+        map.as_os_str(),
+    ]);
+    let red_pixels = |extra: &[&str]| {
+        let png_path = dir.path().join("view.png");
+        let mut args: Vec<&std::ffi::OsStr> = vec![
+            "render".as_ref(),
+            map.as_os_str(),
+            "--size".as_ref(),
+            "200".as_ref(),
+            "--out".as_ref(),
+            png_path.as_os_str(),
+        ];
+        args.extend(extra.iter().map(|s| std::ffi::OsStr::new(*s)));
+        let said = run(&args);
+        let decoder = png::Decoder::new(std::io::BufReader::new(
+            std::fs::File::open(&png_path).unwrap(),
+        ));
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0u8; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        buf.truncate(info.buffer_size());
+        let red = buf
+            .chunks_exact(3)
+            .filter(|p| p[0] > 60 && p[0] as u32 > 2 * (p[1].max(p[2]) as u32))
+            .count();
+        (red, said)
+    };
+    let (coloured, said) = red_pixels(&[]);
+    assert!(coloured > 2000, "{coloured}");
+    assert!(
+        said.contains("colours the file gives its vertices"),
+        "{said}"
+    );
+    let (plain, said) = red_pixels(&["--plain"]);
+    assert!(plain < 100, "only the axes: {plain}");
+    assert!(!said.contains("colours the file gives"), "{said}");
+}

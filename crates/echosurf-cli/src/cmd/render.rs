@@ -29,6 +29,10 @@ pub struct Args {
     /// With --distance-to: the distance (mm) shown red.
     #[arg(long, requires = "distance_to", default_value_t = 1.0)]
     pub scale_mm: f64,
+    /// Draw in the plain mesh colour even when the PLY gives its vertices colours (`red green blue`,
+    /// as `compare --error-map` writes them), which are drawn otherwise.
+    #[arg(long, conflicts_with = "distance_to")]
+    pub plain: bool,
     /// Draw the outlines of this tracked sequence's frames over the mesh (every --outline-every-th
     /// frame), where its poses put them: the mesh must be in the sequence's world frame, as `extract`
     /// writes it.
@@ -64,12 +68,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     let mesh = echosurf::io::read_mesh(&args.mesh)?;
+    let own_colours = if args.plain || args.distance_to.is_some() {
+        None
+    } else {
+        echosurf::io::read_vertex_colours(&args.mesh)?
+    };
+    let from_file = own_colours.is_some();
     let vertex_colours = match &args.distance_to {
         Some(path) => {
             let to = echosurf::io::read_mesh(path)?;
             Some(echosurf::metrics::vertex_distance_map(&mesh, &to, args.scale_mm).1)
         }
-        None => None,
+        None => own_colours,
     };
     let ghost = match &args.ghost {
         Some(path) => Some(echosurf::io::read_mesh(path)?),
@@ -94,7 +104,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         } else {
             defaults.projection
         },
-        colour_bar: vertex_colours
+        colour_bar: args
+            .distance_to
             .as_ref()
             .map(|_| echosurf::metrics::distance_colour_bar(args.scale_mm)),
         vertex_colours,
@@ -110,6 +121,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         image.height,
         mesh.triangles.len()
     );
+    if from_file {
+        println!("drawn in the colours the file gives its vertices (--plain ignores them)");
+    }
     if let Some(path) = &args.distance_to {
         println!(
             "coloured by distance to {}: blue 0 mm to red {} mm and beyond",

@@ -53,6 +53,30 @@ pub fn read_mesh(path: &Path) -> Result<Mesh> {
     }
 }
 
+/// The colours a PLY mesh gives its vertices (`red green blue` vertex properties, 0-255), in the vertex
+/// order [`read_mesh`] keeps; `None` for a PLY without them and for STL and OBJ.
+pub fn read_vertex_colours(path: &Path) -> Result<Option<Vec<[u8; 3]>>> {
+    if format_of(path) != Some(MeshFormat::Ply) {
+        return Ok(None);
+    }
+    let cloud = crate::io::ply::read_point_cloud(path)?;
+    let (Some(r), Some(g), Some(b)) = (
+        cloud.scalar("red"),
+        cloud.scalar("green"),
+        cloud.scalar("blue"),
+    ) else {
+        return Ok(None);
+    };
+    let byte = |v: f32| v.round().clamp(0.0, 255.0) as u8;
+    Ok(Some(
+        r.iter()
+            .zip(g)
+            .zip(b)
+            .map(|((&r, &g), &b)| [byte(r), byte(g), byte(b)])
+            .collect(),
+    ))
+}
+
 /// Writes a mesh as `.ply` (binary little-endian, float vertices, vertex normals when the mesh has them),
 /// `.stl` (binary, facet normals from the geometry) or `.obj` (`v`, `vn`, `f`), atomically.
 pub fn write_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
@@ -777,6 +801,14 @@ mod tests {
             let want: Vec<u8> = colours.iter().map(|c| c[k]).collect();
             assert_eq!(got, want, "{channel}");
         }
+        assert_eq!(read_vertex_colours(&path).unwrap(), Some(colours.clone()));
+        // A plain PLY, and the formats without vertex colours: none.
+        let plain = dir.path().join("plain.ply");
+        write_mesh(&plain, &mesh).unwrap();
+        assert_eq!(read_vertex_colours(&plain).unwrap(), None);
+        let stl = dir.path().join("plain.stl");
+        write_mesh(&stl, &mesh).unwrap();
+        assert_eq!(read_vertex_colours(&stl).unwrap(), None);
         // Wrong counts or a name that clashes: refused, nothing written.
         let refused = dir.path().join("refused.ply");
         for (name, values, colours) in [

@@ -18,7 +18,7 @@ pub use summary::{SequenceSummary, summarise};
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
-pub use mesh_io::{read_mesh, write_mesh, write_ply_with_vertex_values};
+pub use mesh_io::{read_mesh, read_vertex_colours, write_mesh, write_ply_with_vertex_values};
 pub use plus_config::{read_calibration, write_calibration};
 pub use ply::{PointCloud, read_point_cloud, write_point_cloud};
 pub use pose::{
