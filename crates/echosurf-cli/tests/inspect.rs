@@ -5,9 +5,9 @@ use std::process::{Command, Output};
 #[path = "../../echosurf/tests/common/real_data.rs"]
 mod real_data;
 use real_data::real;
-#[path = "../../echosurf/tests/common/grey_png.rs"]
-mod grey_png;
-use grey_png::read_grey_png;
+#[path = "../../echosurf/tests/common/png_pixels.rs"]
+mod png_pixels;
+use png_pixels::read_grey_png;
 
 const NN_MEAN: &str = "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml";
 

@@ -4,8 +4,16 @@ use std::process::Command;
 
 use echosurf::metrics::shapes::torus;
 
+#[path = "../../echosurf/tests/common/png_pixels.rs"]
+mod png_pixels;
 #[path = "../../echosurf/tests/common/real_data.rs"]
 mod real_data;
+use png_pixels::read_rgb_png;
+
+/// A pixel clearly red: red over twice its green and blue (the error maps' far end).
+fn clearly_red(p: &[u8]) -> bool {
+    p[0] > 60 && p[0] as u32 > 2 * p[1].max(p[2]) as u32
+}
 
 #[test]
 fn render_writes_a_deterministic_png_of_the_requested_size() {
@@ -91,17 +99,13 @@ fn distance_to_a_truth_colours_the_picture() {
     }
     // Pixels clearly red, and pixels clearly green.
     let counts = |path: &std::path::Path| {
-        let decoder =
-            png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
-        let mut reader = decoder.read_info().unwrap();
-        let mut buf = vec![0u8; reader.output_buffer_size()];
-        let info = reader.next_frame(&mut buf).unwrap();
+        let (width, _, mut buf) = read_rgb_png(path);
         // The views only: a coloured picture has its colour bar in a strip below them.
-        buf.truncate(3 * (info.width * info.width) as usize);
+        buf.truncate(3 * (width * width) as usize);
         let (mut red, mut green) = (0, 0);
         for p in buf.chunks_exact(3) {
             let [r, g, b] = [p[0] as u32, p[1] as u32, p[2] as u32];
-            red += usize::from(r > 60 && r > 2 * g.max(b));
+            red += usize::from(clearly_red(p));
             green += usize::from(g > 60 && g > r + 20 && g > b + 20);
         }
         (red, green)
@@ -165,14 +169,9 @@ fn frame_outlines_of_a_recording_are_drawn_over_the_mesh() {
             "{}",
             String::from_utf8_lossy(&run.stderr)
         );
-        let decoder = png::Decoder::new(std::io::BufReader::new(
-            std::fs::File::open(&out_png).unwrap(),
-        ));
-        let mut reader = decoder.read_info().unwrap();
-        let mut buf = vec![0u8; reader.output_buffer_size()];
-        let info = reader.next_frame(&mut buf).unwrap();
-        buf.truncate(info.buffer_size());
-        buf.chunks_exact(3)
+        read_rgb_png(&out_png)
+            .2
+            .chunks_exact(3)
             .filter(|p| p[0] > 150 && p[1] > 110 && p[2] < 90)
             .count()
     };
@@ -258,16 +257,10 @@ fn a_coloured_ply_is_drawn_in_its_colours() {
         ];
         args.extend(extra.iter().map(|s| std::ffi::OsStr::new(*s)));
         let said = run(&args);
-        let decoder = png::Decoder::new(std::io::BufReader::new(
-            std::fs::File::open(&png_path).unwrap(),
-        ));
-        let mut reader = decoder.read_info().unwrap();
-        let mut buf = vec![0u8; reader.output_buffer_size()];
-        let info = reader.next_frame(&mut buf).unwrap();
-        buf.truncate(info.buffer_size());
-        let red = buf
+        let red = read_rgb_png(&png_path)
+            .2
             .chunks_exact(3)
-            .filter(|p| p[0] > 60 && p[0] as u32 > 2 * (p[1].max(p[2]) as u32))
+            .filter(|p| clearly_red(p))
             .count();
         (red, said)
     };

@@ -663,9 +663,9 @@ fn a_band_that_follows_what_it_holds_never_takes_in_a_second_echo() {
     assert_eq!(following.parameters.band_radius_outside_px, 0.0);
 }
 
-#[path = "../../tests/common/grey_png.rs"]
-mod grey_png;
-use grey_png::read_grey_png;
+#[path = "../../tests/common/png_pixels.rs"]
+mod png_pixels;
+use png_pixels::read_grey_png;
 
 #[test]
 fn a_frame_is_written_pixel_for_pixel_to_draw_on() {
