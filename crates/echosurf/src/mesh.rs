@@ -1,6 +1,7 @@
 //! The triangle mesh shared by the surfacer, the mesh readers and writers, the metrics and the renderer.
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 /// An indexed triangle mesh in millimetres (Reference frame). `normals` is either empty or one unit
 /// normal per vertex. Triangles wind counter-clockwise seen from the side their normal points to.
@@ -383,6 +384,40 @@ impl Mesh {
             }
         }
         distance.iter().map(|d| d.is_finite()).collect()
+    }
+
+    /// Removes the triangles with a vertex farther than `max_distance_mm` from every echo (`echoes`):
+    /// in a gap of the data (outside the kept band, in a shadow) the fitted field can overshoot into a
+    /// ridge that nothing echoed, and the sheet drawn through it is a flap hanging off the wall. A
+    /// surface is only as good as the echoes near it. Where two kept fans then touch at one vertex,
+    /// each gets its own copy of it (the mesh stays manifold). Returns the triangles removed.
+    pub fn remove_triangles_far_from_echoes(
+        &mut self,
+        echoes: &[DVec3],
+        max_distance_mm: f64,
+    ) -> usize {
+        if self.triangles.is_empty() || !(max_distance_mm.is_finite() && max_distance_mm > 0.0) {
+            return 0;
+        }
+        let buckets = crate::spatial::PointBuckets::new(echoes, max_distance_mm);
+        let backed: Vec<bool> = self
+            .vertices
+            .par_iter()
+            .map(|&v| buckets.as_ref().is_some_and(|b| b.contains(v)))
+            .collect();
+        let keep: Vec<bool> = self
+            .triangles
+            .iter()
+            .map(|t| {
+                t.iter()
+                    .all(|&i| backed.get(i as usize).copied().unwrap_or(false))
+            })
+            .collect();
+        let removed = self.retain_triangles(&keep);
+        if removed > 0 {
+            self.split_pinched_vertices();
+        }
+        removed
     }
 
     /// Removes the edge-connected components that fewer than `min_frames` frames back: a frame backs a
@@ -1119,6 +1154,64 @@ mod tests {
             }
         }
         mesh
+    }
+
+    #[test]
+    fn triangles_far_from_every_echo_are_removed() {
+        // Echoes 0.3 mm above the left half of a 10 x 10 grid (x <= 5), none over the right half.
+        let mut echoes = Vec::new();
+        for i in 0..=10 {
+            for j in 0..=20 {
+                echoes.push(DVec3::new(i as f64 * 0.5, j as f64 * 0.5, 0.3));
+            }
+        }
+        let grid = grid_with_holes(10, &[]);
+        // Within 2 mm: the vertices at x <= 6 (x = 7 is sqrt(4.09) mm away), so 6 of the 10 columns of
+        // squares stay.
+        let mut mesh = grid.clone();
+        assert_eq!(mesh.remove_triangles_far_from_echoes(&echoes, 2.0), 80);
+        assert_eq!(mesh.triangles.len(), 120);
+        assert!(mesh.vertices.iter().all(|v| v.x <= 6.0));
+        assert_eq!(mesh.vertices.len(), 7 * 11);
+        // A reach past the far edge keeps everything; 0 (or not finite) checks nothing; no echoes at all
+        // back nothing.
+        let mut all = grid.clone();
+        assert_eq!(all.remove_triangles_far_from_echoes(&echoes, 5.1), 0);
+        assert_eq!(all.remove_triangles_far_from_echoes(&[], 0.0), 0);
+        assert_eq!(all.remove_triangles_far_from_echoes(&[], f64::NAN), 0);
+        assert_eq!(all.remove_triangles_far_from_echoes(&[], 1.0), 200);
+        assert!(all.is_empty());
+    }
+
+    #[test]
+    fn removing_triangles_far_from_echoes_leaves_no_pinch() {
+        // An open fan of four triangles around the origin; the middle two share the vertex x, which
+        // no echo backs. Without them the outer two touch at the origin only, which each then holds
+        // a copy of.
+        let x = DVec3::new(-0.2, 1.5, 0.0);
+        let mut mesh = Mesh {
+            vertices: vec![
+                DVec3::ZERO,
+                DVec3::new(1.0, 0.0, 0.0),
+                DVec3::new(1.0, 1.0, 0.0),
+                x,
+                DVec3::new(-1.0, 0.0, 0.0),
+                DVec3::new(-1.0, -1.0, 0.0),
+            ],
+            normals: Vec::new(),
+            triangles: vec![[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 5]],
+        };
+        assert_eq!(mesh.topology().nonmanifold_vertices, 0);
+        let echoes: Vec<DVec3> = mesh.vertices.iter().copied().filter(|&v| v != x).collect();
+        assert_eq!(mesh.remove_triangles_far_from_echoes(&echoes, 0.5), 2);
+        let topology = mesh.topology();
+        assert_eq!(topology.nonmanifold_vertices, 0, "{topology:?}");
+        assert_eq!(topology.components, 2);
+        assert_eq!(mesh.vertices.len(), 6);
+        assert_eq!(
+            mesh.vertices.iter().filter(|&&v| v == DVec3::ZERO).count(),
+            2
+        );
     }
 
     #[test]

@@ -93,6 +93,11 @@ pub struct Args {
     /// Ridge sheet: how far (mm) a weak echo's ridge may continue from a strong one.
     #[arg(long, default_value_t = WeakEchoes::default().reach_mm)]
     pub ridge_weak_reach: f64,
+    /// Ridge sheet: first remove the triangles farther than this (mm) from every echo (a kept sample
+    /// block as bright as the lowest level the sheet was drawn at): flaps the fitted function made
+    /// where no echo was recorded. 0 keeps them.
+    #[arg(long, default_value_t = pipeline::DEFAULT_MAX_ECHO_DISTANCE_MM, value_name = "MM")]
+    pub max_echo_distance: f64,
     /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all. Default: 5 for the
     /// iso sheet, 2 for the ridge sheet.
     #[arg(long)]
@@ -262,6 +267,14 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
         ),
         _ => format!("{name} sheet"),
     };
+    let far = match used.triangles_far_from_echoes {
+        0 => String::new(),
+        n => format!(
+            ", {n} triangle{} farther than {} mm from an echo removed",
+            if n == 1 { "" } else { "s" },
+            used.max_echo_distance_mm
+        ),
+    };
     let unbacked = match used.pieces_without_echoes {
         0 => String::new(),
         n => format!(
@@ -286,7 +299,7 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
             if used.trim_rim_rings == 1 { "" } else { "s" }
         ),
     };
-    why + &weak + &unbacked + &bridged + &trimmed
+    why + &weak + &far + &unbacked + &bridged + &trimmed
 }
 
 /// A tracked sequence given to score or draw a mesh against (`compare --sequence`, `render
@@ -386,6 +399,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         min_echo_frames: args.min_echo_frames,
         trim_rim_rings: args.trim_rim,
+        max_echo_distance_mm: if args.max_echo_distance.is_finite() && args.max_echo_distance >= 0.0
+        {
+            args.max_echo_distance
+        } else {
+            anyhow::bail!("--max-echo-distance must be a distance in mm >= 0")
+        },
         bridge_gap_mm: if args.bridge_gap.is_finite() && args.bridge_gap >= 0.0 {
             args.bridge_gap
         } else {

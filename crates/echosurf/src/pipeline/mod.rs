@@ -70,6 +70,11 @@ pub struct ExtractOptions {
     /// going to the others at random (see [`priority_decimate`]). `None`: the paper's uniform random
     /// decimation.
     pub echo_margin_mm: Option<f64>,
+    /// First, the echo-ridge sheet's triangles farther than this (mm) from every echo are removed
+    /// ([`Mesh::remove_triangles_far_from_echoes`]; an echo is a kept sample block at or above the
+    /// lowest level the sheet was drawn at): flaps the fitted field made in gaps of the data. 0 keeps
+    /// them; the iso sheet is not checked.
+    pub max_echo_distance_mm: f64,
     /// Connected pieces of a surface smaller than this (mm^2) are removed: isolated speckle blobs and
     /// shreds. 0 keeps everything; `None`: the sheet's default ([`Sheet::default_min_component_area_mm2`]).
     pub min_component_area_mm2: Option<f64>,
@@ -115,6 +120,7 @@ impl Default for ExtractOptions {
             sample_bin_mm: 0.4,
             echo_margin_mm: Some(DEFAULT_ECHO_MARGIN_MM),
             min_echo_frames: DEFAULT_MIN_ECHO_FRAMES,
+            max_echo_distance_mm: DEFAULT_MAX_ECHO_DISTANCE_MM,
             bridge_gap_mm: DEFAULT_BRIDGE_GAP_MM,
             trim_rim_rings: 0,
             sheet: Sheet::Auto,
@@ -249,6 +255,10 @@ pub struct SheetUsed {
     pub ridge_reached_share: Option<f64>,
     /// The lower level whose ridges extended the ridge sheet ([`WeakEchoes`]); `None`: not extended.
     pub weak_ridge_level: Option<f64>,
+    /// Farthest a triangle's vertex may lie from an echo (mm; 0: not checked), and the triangles
+    /// removed for it ([`Mesh::remove_triangles_far_from_echoes`]).
+    pub max_echo_distance_mm: f64,
+    pub triangles_far_from_echoes: usize,
     /// Smallest piece kept (mm^2).
     pub min_component_area_mm2: f64,
     /// Least frames whose echoes must back a piece (0: not checked; at most the frames used), and the
@@ -272,6 +282,8 @@ impl SheetUsed {
             sheet: Sheet::Iso,
             ridge_reached_share: None,
             weak_ridge_level: None,
+            max_echo_distance_mm: 0.0,
+            triangles_far_from_echoes: 0,
             min_component_area_mm2: 0.0,
             min_echo_frames: 0,
             pieces_without_echoes: 0,
@@ -329,6 +341,14 @@ impl FrameBeams {
 /// How many frames' echoes must back a piece of surface by default (see
 /// [`ExtractOptions::min_echo_frames`]).
 pub const DEFAULT_MIN_ECHO_FRAMES: usize = 3;
+
+/// Default [`ExtractOptions::max_echo_distance_mm`]. On the simulated duck (seed 8) the sheet's
+/// vertices within 0.3 mm of the true walls lie within 1.14 mm (99th percentile) of a kept block as
+/// bright as the weak echoes, those more than 1.5 mm off the walls a median 3.3 mm away; the hand's
+/// accurate vertices reach 1.73 mm. Over duck seeds 1-8 and hand seeds 1-3: 2 mm splits hand seed
+/// 1's patch and costs hand seed 3 0.004 of completeness, 3 mm leaves duck seed 8's p95 at 0.599 mm
+/// (2.5 mm: 0.591, none: 0.638). docs/pipeline.md, "Flaps without echoes".
+pub const DEFAULT_MAX_ECHO_DISTANCE_MM: f64 = 2.5;
 /// An echo backs a piece of surface within this distance of one of its vertices: about a speckle cell
 /// plus the fit's smoothing, well inside the distance to another wall.
 pub const ECHO_SUPPORT_RADIUS_MM: f64 = 1.0;
@@ -926,7 +946,7 @@ fn move_onto_echo_ridges(
     Ok(())
 }
 
-/// Removes small pieces, then pieces too few frames echo, then joins the pieces left that continue one
+/// Removes the triangles far from every echo, then small pieces, then pieces too few frames echo, then joins the pieces left that continue one
 /// another across small gaps, then (if asked) trims the rims.
 fn remove_and_join_pieces(
     meshes: &mut [Mesh],
@@ -935,6 +955,27 @@ fn remove_and_join_pieces(
     options: &ExtractOptions,
 ) {
     for (mesh, used) in meshes.iter_mut().zip(sheets) {
+        // The ridge sheet only: it claims to lie on echoes. The iso sheet wraps a thick bright
+        // structure where the fitted field stays above the level beyond the kept band (the real spine
+        // sweep: a third of its triangles lie farther than 2.5 mm from a kept block that bright).
+        if used.sheet == Sheet::EchoRidge
+            && options.max_echo_distance_mm.is_finite()
+            && options.max_echo_distance_mm > 0.0
+        {
+            // The weak echoes' ridges extend the sheet: they back it too.
+            let level = used.weak_ridge_level.unwrap_or(used.level);
+            let echoes: Vec<DVec3> = prepared
+                .all
+                .positions
+                .iter()
+                .zip(&prepared.all.intensities)
+                .filter(|(_, value)| **value as f64 >= level)
+                .map(|(&p, _)| p)
+                .collect();
+            used.max_echo_distance_mm = options.max_echo_distance_mm;
+            used.triangles_far_from_echoes =
+                mesh.remove_triangles_far_from_echoes(&echoes, options.max_echo_distance_mm);
+        }
         used.min_component_area_mm2 = options.min_component_area_for(used.sheet);
         if used.min_component_area_mm2 > 0.0 {
             mesh.remove_small_components(used.min_component_area_mm2);
