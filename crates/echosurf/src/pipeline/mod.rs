@@ -349,6 +349,7 @@ pub const DEFAULT_MIN_ECHO_FRAMES: usize = 3;
 /// 1's patch and costs hand seed 3 0.004 of completeness, 3 mm leaves duck seed 8's p95 at 0.599 mm
 /// (2.5 mm: 0.591, none: 0.638). docs/pipeline.md, "Flaps without echoes".
 pub const DEFAULT_MAX_ECHO_DISTANCE_MM: f64 = 2.5;
+
 /// An echo backs a piece of surface within this distance of one of its vertices: about a speckle cell
 /// plus the fit's smoothing, well inside the distance to another wall.
 pub const ECHO_SUPPORT_RADIUS_MM: f64 = 1.0;
@@ -946,8 +947,8 @@ fn move_onto_echo_ridges(
     Ok(())
 }
 
-/// Removes the triangles far from every echo, then small pieces, then pieces too few frames echo, then joins the pieces left that continue one
-/// another across small gaps, then (if asked) trims the rims.
+/// Removes the triangles far from every echo, then small pieces, then pieces too few frames echo, then
+/// joins the pieces left that continue one another across small gaps, then (if asked) trims the rims.
 fn remove_and_join_pieces(
     meshes: &mut [Mesh],
     sheets: &mut [SheetUsed],
@@ -963,15 +964,7 @@ fn remove_and_join_pieces(
             && options.max_echo_distance_mm > 0.0
         {
             // The weak echoes' ridges extend the sheet: they back it too.
-            let level = used.weak_ridge_level.unwrap_or(used.level);
-            let echoes: Vec<DVec3> = prepared
-                .all
-                .positions
-                .iter()
-                .zip(&prepared.all.intensities)
-                .filter(|(_, value)| **value as f64 >= level)
-                .map(|(&p, _)| p)
-                .collect();
+            let (echoes, _) = kept_echoes(prepared, used.weak_ridge_level.unwrap_or(used.level));
             used.max_echo_distance_mm = options.max_echo_distance_mm;
             used.triangles_far_from_echoes =
                 mesh.remove_triangles_far_from_echoes(&echoes, options.max_echo_distance_mm);
@@ -983,17 +976,7 @@ fn remove_and_join_pieces(
         // A recording of fewer frames cannot show a wall more often than it has frames.
         used.min_echo_frames = options.min_echo_frames.min(prepared.counts.frames_used);
         if used.min_echo_frames > 0 {
-            // All kept blocks, not just the fitted samples: the check must not depend on the
-            // sample budget.
-            let (echoes, frames): (Vec<DVec3>, Vec<u32>) = prepared
-                .all
-                .positions
-                .iter()
-                .zip(&prepared.all.intensities)
-                .zip(&prepared.all.frame_of_sample)
-                .filter(|((_, value), _)| **value as f64 >= used.level)
-                .map(|((&p, _), &f)| (p, f))
-                .unzip();
+            let (echoes, frames) = kept_echoes(prepared, used.level);
             used.pieces_without_echoes = mesh.remove_components_seen_in_few_frames(
                 &echoes,
                 &frames,
@@ -1011,6 +994,19 @@ fn remove_and_join_pieces(
             used.rim_triangles_trimmed = mesh.trim_rim(options.trim_rim_rings);
         }
     }
+}
+
+/// The kept blocks at or above `level` (positions, and the frame each came from): all of them, not just
+/// the fitted samples, so that the checks on a surface do not depend on the sample budget.
+fn kept_echoes(prepared: &PreparedSamples, level: f64) -> (Vec<DVec3>, Vec<u32>) {
+    let all = &prepared.all;
+    all.positions
+        .iter()
+        .zip(&all.intensities)
+        .zip(&all.frame_of_sample)
+        .filter(|((_, value), _)| **value as f64 >= level)
+        .map(|((&p, _), &f)| (p, f))
+        .unzip()
 }
 
 fn bounds(points: &[DVec3]) -> (DVec3, DVec3) {
