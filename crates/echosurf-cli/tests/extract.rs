@@ -468,15 +468,15 @@ fn trimming_the_rim_keeps_the_pieces_and_shortens_the_tail() {
 }
 
 /// `--max-echo-distance` removes the ridge sheet's triangles far from every kept echo before the piece
-/// checks: on the small sphere none lie beyond the default 2.5 mm, 70 beyond 1 mm (measured); the mesh
-/// stays an oriented manifold, and 0 turns the check off. A negative distance is refused.
+/// checks: on the small sphere none lie beyond the default 1.5 mm, 298 beyond 0.5 mm (measured); the
+/// mesh stays an oriented manifold, and 0 turns the check off. A negative distance is refused.
 #[test]
 fn triangles_far_from_every_echo_are_removed_and_reported() {
     let dir = tempfile::tempdir().unwrap();
     let (seq, config) = simulate(dir.path());
     let truth = dir.path().join("truth.ply");
     let mut removed = Vec::new();
-    for distance in ["0", "2.5", "1"] {
+    for distance in ["0", "1.5", "0.5"] {
         let mesh = dir.path().join(format!("mesh_{distance}.ply"));
         let report = dir.path().join(format!("report_{distance}.json"));
         let out = extract(

@@ -386,25 +386,16 @@ impl Mesh {
         distance.iter().map(|d| d.is_finite()).collect()
     }
 
-    /// Removes the triangles with a vertex farther than `max_distance_mm` from every echo (`echoes`):
-    /// in a gap of the data (outside the kept band, in a shadow) the fitted field can overshoot into a
-    /// ridge that nothing echoed, and the sheet drawn through it is a flap hanging off the wall. A
-    /// surface is only as good as the echoes near it. Where two kept fans then touch at one vertex,
-    /// each gets its own copy of it (the mesh stays manifold). Returns the triangles removed.
-    pub fn remove_triangles_far_from_echoes(
-        &mut self,
-        echoes: &[DVec3],
-        max_distance_mm: f64,
-    ) -> usize {
-        if self.triangles.is_empty() || !(max_distance_mm.is_finite() && max_distance_mm > 0.0) {
+    /// Removes the triangles with a vertex no echo backs (`backed`; the pipeline's test allows for the
+    /// gaps between frames): in a gap of the data (outside the kept band, in a shadow) the fitted field
+    /// can overshoot into a ridge that nothing echoed, and the sheet drawn through it is a flap hanging
+    /// off the wall. A surface is only as good as the echoes near it. Where two kept fans then touch at
+    /// one vertex, each gets its own copy of it (the mesh stays manifold). Returns the triangles removed.
+    pub fn remove_triangles_not_backed(&mut self, backed: impl Fn(DVec3) -> bool + Sync) -> usize {
+        if self.triangles.is_empty() {
             return 0;
         }
-        let buckets = crate::spatial::PointBuckets::new(echoes, max_distance_mm);
-        let backed: Vec<bool> = self
-            .vertices
-            .par_iter()
-            .map(|&v| buckets.as_ref().is_some_and(|b| b.contains(v)))
-            .collect();
+        let backed: Vec<bool> = self.vertices.par_iter().map(|&v| backed(v)).collect();
         let keep: Vec<bool> = self
             .triangles
             .iter()
@@ -1156,6 +1147,12 @@ mod tests {
         mesh
     }
 
+    /// Within `max_distance_mm` of one of `echoes`.
+    fn near_any(echoes: &[DVec3], max_distance_mm: f64) -> impl Fn(DVec3) -> bool + Sync {
+        let buckets = crate::spatial::PointBuckets::new(echoes, max_distance_mm);
+        move |v| buckets.as_ref().is_some_and(|b| b.contains(v))
+    }
+
     #[test]
     fn triangles_far_from_every_echo_are_removed() {
         // Echoes 0.3 mm above the left half of a 10 x 10 grid (x <= 5), none over the right half.
@@ -1169,17 +1166,14 @@ mod tests {
         // Within 2 mm: the vertices at x <= 6 (x = 7 is sqrt(4.09) mm away), so 6 of the 10 columns of
         // squares stay.
         let mut mesh = grid.clone();
-        assert_eq!(mesh.remove_triangles_far_from_echoes(&echoes, 2.0), 80);
+        assert_eq!(mesh.remove_triangles_not_backed(near_any(&echoes, 2.0)), 80);
         assert_eq!(mesh.triangles.len(), 120);
         assert!(mesh.vertices.iter().all(|v| v.x <= 6.0));
         assert_eq!(mesh.vertices.len(), 7 * 11);
-        // A reach past the far edge keeps everything; 0 (or not finite) checks nothing; no echoes at all
-        // back nothing.
+        // A reach past the far edge keeps everything; no echoes at all back nothing.
         let mut all = grid.clone();
-        assert_eq!(all.remove_triangles_far_from_echoes(&echoes, 5.1), 0);
-        assert_eq!(all.remove_triangles_far_from_echoes(&[], 0.0), 0);
-        assert_eq!(all.remove_triangles_far_from_echoes(&[], f64::NAN), 0);
-        assert_eq!(all.remove_triangles_far_from_echoes(&[], 1.0), 200);
+        assert_eq!(all.remove_triangles_not_backed(near_any(&echoes, 5.1)), 0);
+        assert_eq!(all.remove_triangles_not_backed(near_any(&[], 1.0)), 200);
         assert!(all.is_empty());
     }
 
@@ -1203,7 +1197,7 @@ mod tests {
         };
         assert_eq!(mesh.topology().nonmanifold_vertices, 0);
         let echoes: Vec<DVec3> = mesh.vertices.iter().copied().filter(|&v| v != x).collect();
-        assert_eq!(mesh.remove_triangles_far_from_echoes(&echoes, 0.5), 2);
+        assert_eq!(mesh.remove_triangles_not_backed(near_any(&echoes, 0.5)), 2);
         let topology = mesh.topology();
         assert_eq!(topology.nonmanifold_vertices, 0, "{topology:?}");
         assert_eq!(topology.components, 2);

@@ -94,8 +94,8 @@ pub struct Args {
     #[arg(long, default_value_t = WeakEchoes::default().reach_mm)]
     pub ridge_weak_reach: f64,
     /// Ridge sheet: first remove the triangles farther than this (mm) from every echo (a kept sample
-    /// block as bright as the lowest level the sheet was drawn at): flaps the fitted function made
-    /// where no echo was recorded. 0 keeps them.
+    /// block as bright as the lowest level the sheet was drawn at, reaching out of its frame half the
+    /// gap to the next frame): flaps the fitted function made where no echo was recorded. 0 keeps them.
     #[arg(long, default_value_t = pipeline::DEFAULT_MAX_ECHO_DISTANCE_MM, value_name = "MM")]
     pub max_echo_distance: f64,
     /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all. Default: 5 for the

@@ -22,7 +22,9 @@ use crate::surface::{
     extend_ridge_sheet, extract_surfaces_with_stats, proximal_sheet_on_ridge, sheet_through_points,
 };
 use crate::{Error, Result};
+use echo_reach::EchoReach;
 
+mod echo_reach;
 mod voxel_route;
 
 pub use voxel_route::{VoxelRouteOptions, VoxelRouteReport, smooth_masked_gaussian};
@@ -71,9 +73,10 @@ pub struct ExtractOptions {
     /// decimation.
     pub echo_margin_mm: Option<f64>,
     /// First, the echo-ridge sheet's triangles farther than this (mm) from every echo are removed
-    /// ([`Mesh::remove_triangles_far_from_echoes`]; an echo is a kept sample block at or above the
-    /// lowest level the sheet was drawn at): flaps the fitted field made in gaps of the data. 0 keeps
-    /// them; the iso sheet is not checked.
+    /// ([`Mesh::remove_triangles_not_backed`]; an echo is a kept sample block at or above the lowest
+    /// level the sheet was drawn at, and reaches out of its frame's plane half the gap to the next
+    /// frame, at most half the trust distance: [`echo_reach`]): flaps the fitted field made in gaps of
+    /// the data. 0 keeps them; the iso sheet is not checked.
     pub max_echo_distance_mm: f64,
     /// Connected pieces of a surface smaller than this (mm^2) are removed: isolated speckle blobs and
     /// shreds. 0 keeps everything; `None`: the sheet's default ([`Sheet::default_min_component_area_mm2`]).
@@ -256,7 +259,7 @@ pub struct SheetUsed {
     /// The lower level whose ridges extended the ridge sheet ([`WeakEchoes`]); `None`: not extended.
     pub weak_ridge_level: Option<f64>,
     /// Farthest a triangle's vertex may lie from an echo (mm; 0: not checked), and the triangles
-    /// removed for it ([`Mesh::remove_triangles_far_from_echoes`]).
+    /// removed for it ([`Mesh::remove_triangles_not_backed`]).
     pub max_echo_distance_mm: f64,
     pub triangles_far_from_echoes: usize,
     /// Smallest piece kept (mm^2).
@@ -342,13 +345,12 @@ impl FrameBeams {
 /// [`ExtractOptions::min_echo_frames`]).
 pub const DEFAULT_MIN_ECHO_FRAMES: usize = 3;
 
-/// Default [`ExtractOptions::max_echo_distance_mm`]. On the simulated duck (seed 8) the sheet's
-/// vertices within 0.3 mm of the true walls lie within 1.14 mm (99th percentile) of a kept block as
-/// bright as the weak echoes, those more than 1.5 mm off the walls a median 3.3 mm away; the hand's
-/// accurate vertices reach 1.73 mm. Over duck seeds 1-8 and hand seeds 1-3: 2 mm splits hand seed
-/// 1's patch and costs hand seed 3 0.004 of completeness, 3 mm leaves duck seed 8's p95 at 0.599 mm
-/// (2.5 mm: 0.591, none: 0.638). docs/pipeline.md, "Flaps without echoes".
-pub const DEFAULT_MAX_ECHO_DISTANCE_MM: f64 = 2.5;
+/// Default [`ExtractOptions::max_echo_distance_mm`], in the frame's plane and beyond the echoes'
+/// reach across it. Over the simulated duck seeds 1-8 and hand seeds 1-3 it lowers p95 on every duck
+/// seed (seed 8: 0.591 -> 0.578 mm against the plain 2.5 mm distance) and changes no completeness
+/// figure; 1 mm takes duck seed 4 under 0.60 mm but drops 0.5-0.8 points of the walls facing away from
+/// the probe (seeds 4 and 8). docs/pipeline.md, "Flaps without echoes".
+pub const DEFAULT_MAX_ECHO_DISTANCE_MM: f64 = 1.5;
 
 /// An echo backs a piece of surface within this distance of one of its vertices: about a speckle cell
 /// plus the fit's smoothing, well inside the distance to another wall.
@@ -824,7 +826,14 @@ pub fn extract(
         })?;
     }
     meter.stage("pieces", || {
-        remove_and_join_pieces(&mut meshes, &mut sheets, &prepared, options)
+        remove_and_join_pieces(
+            &mut meshes,
+            &mut sheets,
+            &prepared,
+            [sequence.width, sequence.height],
+            trust_distance_mm,
+            options,
+        )
     });
     for (used, mesh) in sheets.iter().zip(&meshes) {
         if mesh.is_empty() && used.pieces_without_echoes > 0 {
@@ -953,6 +962,8 @@ fn remove_and_join_pieces(
     meshes: &mut [Mesh],
     sheets: &mut [SheetUsed],
     prepared: &PreparedSamples,
+    frame_size_px: [usize; 2],
+    trust_distance_mm: f64,
     options: &ExtractOptions,
 ) {
     for (mesh, used) in meshes.iter_mut().zip(sheets) {
@@ -964,10 +975,18 @@ fn remove_and_join_pieces(
             && options.max_echo_distance_mm > 0.0
         {
             // The weak echoes' ridges extend the sheet: they back it too.
-            let (echoes, _) = kept_echoes(prepared, used.weak_ridge_level.unwrap_or(used.level));
+            let (echoes, frames) =
+                kept_echoes(prepared, used.weak_ridge_level.unwrap_or(used.level));
+            let reach = EchoReach::new(
+                &echoes,
+                &frames,
+                &prepared.poses,
+                frame_size_px,
+                options.max_echo_distance_mm,
+                0.5 * trust_distance_mm,
+            );
             used.max_echo_distance_mm = options.max_echo_distance_mm;
-            used.triangles_far_from_echoes =
-                mesh.remove_triangles_far_from_echoes(&echoes, options.max_echo_distance_mm);
+            used.triangles_far_from_echoes = mesh.remove_triangles_not_backed(|v| reach.backs(v));
         }
         used.min_component_area_mm2 = options.min_component_area_for(used.sheet);
         if used.min_component_area_mm2 > 0.0 {
