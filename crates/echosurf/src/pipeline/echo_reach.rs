@@ -331,12 +331,23 @@ mod tests {
         (echoes, frames)
     }
 
+    /// The echo lines of frames at `xs`, backing points within `distance_mm`, reaching at most `cap_mm`.
+    fn reach_over(xs: &[f64], distance_mm: f64, cap_mm: f64) -> EchoReach {
+        let (echoes, frames) = echo_lines(xs);
+        EchoReach::new(
+            &echoes,
+            &frames,
+            &frames_at(xs),
+            [11, 11],
+            distance_mm,
+            cap_mm,
+        )
+    }
+
     #[test]
     fn an_echo_backs_half_the_gap_to_the_next_frame() {
         // Frames at x = 0, 6 and 8 mm: between 0 and 6 each echo reaches 3 mm; 6 reaches 1 mm towards 8.
-        let xs = [0.0, 6.0, 8.0];
-        let (echoes, frames) = echo_lines(&xs);
-        let reach = EchoReach::new(&echoes, &frames, &frames_at(&xs), [11, 11], 2.0, 5.0);
+        let reach = reach_over(&[0.0, 6.0, 8.0], 2.0, 5.0);
         // Mid-gap on the wall: 3 mm from either frame's echoes, backed through their slabs.
         assert!(reach.backs(DVec3::new(3.0, 5.0, 5.0)));
         // Mid-gap but 2.5 mm off the wall in the plane: not backed (the plain test would not either).
@@ -368,25 +379,22 @@ mod tests {
     #[test]
     fn a_gap_wider_than_twice_the_cap_is_a_break() {
         let xs = [0.0, 12.0];
-        let (echoes, frames) = echo_lines(&xs);
         // Cap 6: each frame reaches 6 mm, the middle is backed.
-        let wide = EchoReach::new(&echoes, &frames, &frames_at(&xs), [11, 11], 2.0, 6.0);
+        let wide = reach_over(&xs, 2.0, 6.0);
         assert!(wide.backs(DVec3::new(6.0, 5.0, 5.0)));
         // Cap 5.9: the gap is a break in the sweep, each frame an edge: the plain 2 mm.
-        let broken = EchoReach::new(&echoes, &frames, &frames_at(&xs), [11, 11], 2.0, 5.9);
+        let broken = reach_over(&xs, 2.0, 5.9);
         assert!(broken.backs(DVec3::new(1.9, 5.0, 5.0)));
         assert!(!broken.backs(DVec3::new(2.1, 5.0, 5.0)));
         // No distance: nothing is backed.
-        let off = EchoReach::new(&echoes, &frames, &frames_at(&xs), [11, 11], 0.0, 6.0);
+        let off = reach_over(&xs, 0.0, 6.0);
         assert!(!off.backs(DVec3::new(0.0, 5.0, 5.0)));
     }
 
     #[test]
     fn a_repeated_frame_is_no_gap() {
         // A paused probe: two frames in one plane, then one 6 mm on. The pause must not shrink the reach.
-        let xs = [0.0, 0.0, 6.0];
-        let (echoes, frames) = echo_lines(&xs);
-        let reach = EchoReach::new(&echoes, &frames, &frames_at(&xs), [11, 11], 2.0, 5.0);
+        let reach = reach_over(&[0.0, 0.0, 6.0], 2.0, 5.0);
         assert!(reach.backs(DVec3::new(3.0, 5.0, 5.0)));
     }
 }
