@@ -146,8 +146,8 @@ impl EchoReach {
                 grid.half_gaps(planes[f], &near, [width, height], cap)
             })
             .collect();
-        let (mut normals, mut reach_mm) = (Vec::with_capacity(echoes.len()), Vec::new());
-        reach_mm.reserve_exact(echoes.len());
+        let mut normals = Vec::with_capacity(echoes.len());
+        let mut reach_mm = Vec::with_capacity(echoes.len());
         for (&p, &frame) in echoes.iter().zip(echo_frames) {
             let pose = pose_of_frame
                 .get(frame as usize)

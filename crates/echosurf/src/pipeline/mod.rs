@@ -75,8 +75,8 @@ pub struct ExtractOptions {
     /// First, the echo-ridge sheet's triangles farther than this (mm) from every echo are removed
     /// ([`Mesh::remove_triangles_not_backed`]; an echo is a kept sample block at or above the lowest
     /// level the sheet was drawn at, and reaches out of its frame's plane half the gap to the next
-    /// frame, at most half the trust distance: [`echo_reach`]): flaps the fitted field made in gaps of
-    /// the data. 0 keeps them; the iso sheet is not checked.
+    /// frame, unless that gap is wider than the trust distance: [`echo_reach`]): flaps the fitted field
+    /// made in gaps of the data. 0 keeps them; the iso sheet is not checked.
     pub max_echo_distance_mm: f64,
     /// Connected pieces of a surface smaller than this (mm^2) are removed: isolated speckle blobs and
     /// shreds. 0 keeps everything; `None`: the sheet's default ([`Sheet::default_min_component_area_mm2`]).
