@@ -10,54 +10,11 @@
 //! nothing was imaged, so there the distance is the plain one; so it is across a gap wider than twice
 //! the cap (a break in the sweep).
 
+use super::frame_plane::FramePlane;
 use crate::io::PoseResolution;
 use crate::spatial::PointBuckets;
 use glam::DVec3;
 use rayon::prelude::*;
-
-/// A frame's plane: origin, the world vectors of one pixel along u and v, the unit normal, and the
-/// inverse Gram matrix of (u, v) that projects a world point to pixel coordinates.
-#[derive(Debug, Clone, Copy)]
-struct FramePlane {
-    origin: DVec3,
-    u: DVec3,
-    v: DVec3,
-    normal: DVec3,
-    gram_inverse: [[f64; 2]; 2],
-}
-
-impl FramePlane {
-    fn new(image_to_world: glam::DMat4) -> Option<FramePlane> {
-        let origin = image_to_world.transform_point3(DVec3::ZERO);
-        let u = image_to_world.transform_vector3(DVec3::X);
-        let v = image_to_world.transform_vector3(DVec3::Y);
-        let normal = u.cross(v).try_normalize()?;
-        let (uu, uv, vv) = (u.dot(u), u.dot(v), v.dot(v));
-        let det = uu * vv - uv * uv;
-        if !(det.is_finite() && det > 0.0 && origin.is_finite()) {
-            return None;
-        }
-        Some(FramePlane {
-            origin,
-            u,
-            v,
-            normal,
-            gram_inverse: [[vv / det, -uv / det], [-uv / det, uu / det]],
-        })
-    }
-
-    /// Pixel coordinates of the point's projection onto the plane.
-    fn pixel_of(&self, p: DVec3) -> [f64; 2] {
-        let d = p - self.origin;
-        let (a, b) = (self.u.dot(d), self.v.dot(d));
-        let g = self.gram_inverse;
-        [g[0][0] * a + g[0][1] * b, g[1][0] * a + g[1][1] * b]
-    }
-
-    fn world_of(&self, pixel: [f64; 2]) -> DVec3 {
-        self.origin + self.u * pixel[0] + self.v * pixel[1]
-    }
-}
 
 /// Frames whose normals differ by more than this do not bound each other's gaps (their line-plane
 /// intersections run off to infinity): cos 60 degrees.

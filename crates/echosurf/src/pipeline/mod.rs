@@ -2,7 +2,7 @@
 //! with defaults derived from the data and a report of what every stage did, how long it took and how
 //! much memory it needed. The CLI's `extract`, `sample` and `demo` are thin wrappers around this.
 
-use glam::{DMat4, DVec3};
+use glam::DVec3;
 
 use crate::io::pose::{MIN_SWEEP_SPAN_MM, clip_corners_px, frame_corners, sweep_span_mm};
 use crate::io::{Calibration, PoseResolution, ReferenceChoice, TrackedSequence, resolve_poses};
@@ -23,8 +23,10 @@ use crate::surface::{
 };
 use crate::{Error, Result};
 use echo_reach::EchoReach;
+use frame_plane::FramePlane;
 
 mod echo_reach;
+mod frame_plane;
 mod voxel_route;
 
 pub use voxel_route::{VoxelRouteOptions, VoxelRouteReport, smooth_masked_gaussian};
@@ -300,8 +302,8 @@ impl SheetUsed {
 
 /// The beam direction of the frame nearest a point (among frames whose image the point projects into).
 struct FrameBeams {
-    /// World -> image, image -> world, unit beam direction (the image's +v axis) per frame.
-    frames: Vec<(DMat4, DMat4, DVec3)>,
+    /// Each frame's plane and unit beam direction (the image's +v axis).
+    frames: Vec<(FramePlane, DVec3)>,
     width: f64,
     height: f64,
     max_distance_mm: f64,
@@ -314,9 +316,8 @@ impl FrameBeams {
                 .poses
                 .iter()
                 .filter_map(|p| {
-                    let m = p.image_to_world;
-                    let beam = m.transform_vector3(DVec3::Y).try_normalize()?;
-                    (m.determinant().abs() > 0.0).then(|| (m.inverse(), m, beam))
+                    let plane = FramePlane::new(p.image_to_world)?;
+                    Some((plane, plane.v.try_normalize()?))
                 })
                 .collect(),
             width: sequence.width.saturating_sub(1) as f64,
@@ -327,12 +328,12 @@ impl FrameBeams {
 
     fn beam_at(&self, x: DVec3) -> Option<DVec3> {
         let mut best: Option<(f64, DVec3)> = None;
-        for (to_image, to_world, beam) in &self.frames {
-            let p = to_image.transform_point3(x);
-            if !(p.x >= 0.0 && p.x <= self.width && p.y >= 0.0 && p.y <= self.height) {
+        for (plane, beam) in &self.frames {
+            let [u, v] = plane.pixel_of(x);
+            if !(u >= 0.0 && u <= self.width && v >= 0.0 && v <= self.height) {
                 continue;
             }
-            let distance = x.distance(to_world.transform_point3(DVec3::new(p.x, p.y, 0.0)));
+            let distance = x.distance(plane.world_of([u, v]));
             if distance <= self.max_distance_mm && best.is_none_or(|(d, _)| distance < d) {
                 best = Some((distance, *beam));
             }
