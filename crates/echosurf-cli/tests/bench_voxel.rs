@@ -5,18 +5,8 @@ use std::process::Command;
 
 use echosurf::metrics::{CompareOptions, compare_meshes};
 
-fn echosurf(args: &[&str]) -> std::process::Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "echosurf {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
+mod common;
+use common::echosurf_ok as echosurf;
 
 fn simulate_sphere(dir: &Path) {
     echosurf(&[

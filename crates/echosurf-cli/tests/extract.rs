@@ -2,14 +2,10 @@
 //! manifold mesh near the true surface, a report and a preview; bad requests fail cleanly.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
-fn echosurf(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .args(args)
-        .output()
-        .unwrap()
-}
+mod common;
+use common::echosurf;
 
 /// `echosurf extract SEQ --config CONFIG --out OUT` followed by `extra`.
 fn extract(seq: &Path, config: &Path, out: &Path, extra: &[&str]) -> Output {

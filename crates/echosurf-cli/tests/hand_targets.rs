@@ -4,20 +4,9 @@
 //! "Accuracy across seeds".)
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn echosurf(args: &[&str]) -> Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
+mod common;
+use common::echosurf_ok as echosurf;
 
 fn compare_json(mesh: &Path, dir: &Path, extra: &[&str]) -> serde_json::Value {
     let truth = dir.join("truth.ply");

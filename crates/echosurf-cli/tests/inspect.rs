@@ -1,6 +1,6 @@
 //! `echosurf inspect` end to end on the real PLUS data.
 
-use std::process::{Command, Output};
+use std::process::Output;
 
 #[path = "../../echosurf/tests/common/real_data.rs"]
 mod real_data;
@@ -11,12 +11,12 @@ use png_pixels::read_grey_png;
 
 const NN_MEAN: &str = "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml";
 
+mod common;
+
 fn inspect(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .arg("inspect")
-        .args(args)
-        .output()
-        .expect("run echosurf")
+    let mut all = vec!["inspect"];
+    all.extend_from_slice(args);
+    common::echosurf(&all)
 }
 
 fn path_arg(name: &str) -> String {

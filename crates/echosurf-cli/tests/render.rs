@@ -2,6 +2,8 @@
 
 use std::process::Command;
 
+mod common;
+
 use echosurf::metrics::shapes::torus;
 
 #[path = "../../echosurf/tests/common/png_pixels.rs"]
@@ -226,16 +228,7 @@ fn a_coloured_ply_is_drawn_in_its_colours() {
     echosurf::io::write_mesh(&mesh, &torus(20.0, 6.0, 64, 32)).unwrap();
     echosurf::io::write_mesh(&truth, &torus(20.0, 5.0, 64, 32)).unwrap();
     let run = |args: &[&std::ffi::OsStr]| {
-        let out = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-            .args(args)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        String::from_utf8_lossy(&out.stdout).into_owned()
+        String::from_utf8_lossy(&common::echosurf_ok(args).stdout).into_owned()
     };
     // 1 mm apart everywhere: red on the default 1 mm scale.
     run(&[

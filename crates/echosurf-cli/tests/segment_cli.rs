@@ -1,7 +1,6 @@
 //! `echosurf segment` and `echosurf sample` end to end on the real PLUS spine sweep.
 
 use std::path::Path;
-use std::process::Command;
 
 #[path = "../../echosurf/tests/common/real_data.rs"]
 mod real_data;
@@ -17,12 +16,8 @@ fn spine_args() -> Vec<String> {
     ]
 }
 
-fn echosurf(args: &[String]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .args(args)
-        .output()
-        .unwrap()
-}
+mod common;
+use common::echosurf;
 
 /// Runs `echosurf segment` on the spine sweep with `--auto-init`, `extra` options and `--out out`;
 /// returns the masks' pixels (MET_UCHAR).
