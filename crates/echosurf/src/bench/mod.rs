@@ -15,6 +15,7 @@ pub mod svg;
 
 use glam::{DMat4, DVec3};
 
+use crate::io::pose::FramePlane;
 use crate::io::{Calibration, ClipRect, TrackedSequence, resolve_poses};
 use crate::mesh::Mesh;
 use crate::metrics::{CompareOptions, compare_meshes, triangle_map};
@@ -226,16 +227,12 @@ pub fn swept_beam_cosines(
             Some([a, b, c, d]) => (a, b, c, d),
             None => (0.0, 0.0, width as f64 - 1.0, height as f64 - 1.0),
         };
-    // Per frame: world -> image, image -> world, the unit beam direction and the plane's unit normal.
-    let frames: Vec<(DMat4, DMat4, DVec3, DVec3)> = image_to_world
+    // Per frame: its plane and the unit beam direction.
+    let frames: Vec<(FramePlane, DVec3)> = image_to_world
         .iter()
-        .filter_map(|m| {
-            let beam = m.transform_vector3(DVec3::Y).try_normalize()?;
-            let normal = m
-                .transform_vector3(DVec3::X)
-                .cross(m.transform_vector3(DVec3::Y))
-                .try_normalize()?;
-            Some((m.inverse(), *m, beam, normal))
+        .filter_map(|&m| {
+            let plane = FramePlane::new(m)?;
+            Some((plane, plane.v.try_normalize()?))
         })
         .collect();
     triangle_map(truth, f64::NEG_INFINITY, |centroid, triangle_normal| {
@@ -244,15 +241,14 @@ pub fn swept_beam_cosines(
         }
         frames
             .iter()
-            .filter(|(world_to_image, to_world, _, plane_normal)| {
-                let p = world_to_image.transform_point3(centroid);
-                if !(p.x >= u0 && p.x <= u1 && p.y >= v0 && p.y <= v1) {
+            .filter(|(plane, _)| {
+                let [u, v] = plane.pixel_of(centroid);
+                if !(u >= u0 && u <= u1 && v >= v0 && v <= v1) {
                     return false;
                 }
-                let foot = to_world.transform_point3(DVec3::new(p.x, p.y, 0.0));
-                (centroid - foot).dot(*plane_normal).abs() <= max_plane_distance_mm
+                (centroid - plane.world_of([u, v])).dot(plane.normal).abs() <= max_plane_distance_mm
             })
-            .map(|(_, _, beam, _)| {
+            .map(|(_, beam)| {
                 let cos = triangle_normal.dot(*beam);
                 match side {
                     FacingSide::Either => cos.abs(),

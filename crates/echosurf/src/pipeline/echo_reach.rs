@@ -10,8 +10,8 @@
 //! nothing was imaged, so there the distance is the plain one; so it is across a gap wider than twice
 //! the cap (a break in the sweep).
 
-use super::frame_plane::FramePlane;
 use crate::io::PoseResolution;
+use crate::io::pose::FramePlane;
 use crate::spatial::PointBuckets;
 use glam::DVec3;
 use rayon::prelude::*;

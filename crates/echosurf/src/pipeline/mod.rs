@@ -4,7 +4,9 @@
 
 use glam::DVec3;
 
-use crate::io::pose::{MIN_SWEEP_SPAN_MM, clip_corners_px, frame_corners, sweep_span_mm};
+use crate::io::pose::{
+    FramePlane, MIN_SWEEP_SPAN_MM, clip_corners_px, frame_corners, sweep_span_mm,
+};
 use crate::io::{Calibration, PoseResolution, ReferenceChoice, TrackedSequence, resolve_poses};
 use crate::mesh::Mesh;
 use crate::progress::Progress;
@@ -23,10 +25,8 @@ use crate::surface::{
 };
 use crate::{Error, Result};
 use echo_reach::EchoReach;
-use frame_plane::FramePlane;
 
 mod echo_reach;
-mod frame_plane;
 mod voxel_route;
 
 pub use voxel_route::{VoxelRouteOptions, VoxelRouteReport, smooth_masked_gaussian};
