@@ -87,8 +87,9 @@ fn true_poses(sim: &Simulation, kind: &PhantomKind) -> PoseResolution {
 /// normal and the beam (30 degrees: the simulator's strong specular echo, at least 18 % of normal
 /// incidence; 45; 60), and the share of all pixels kept, over every posed frame (a frame left empty
 /// counts its surface pixels as lost).
-/// Visible surface: the first boundary each column's beam meets (below it the object shadows everything),
-/// facing the beam within the given angle.
+/// Visible surface: the first boundary each column's beam meets, facing the beam within the given
+/// angle. Below it a solid object shadows everything, but the hollow duck's cavity floor echoes through
+/// its top wall: that wall is measured on its own (`Coverage::deeper_echo_kept`).
 struct Coverage {
     /// (max angle in degrees, kept share within 1 mm of the surface facing the beam within it).
     near_kept: Vec<(f64, f64)>,
@@ -97,6 +98,11 @@ struct Coverage {
     /// not: the issue's words taken literally. Reported, not asserted: about half of it returns no echo
     /// (see `assert_coverage`).
     whole_surface_kept: f64,
+    /// Kept share of the echoes of the walls *behind* the visible one (the duck's cavity floor, seen
+    /// through its top wall): pixels past the first wall and a stretch of water, within 0.3 mm of a
+    /// surface facing the beam within 30 degrees, at grey 60 or more. NaN where there is no such wall
+    /// (the solid sphere).
+    deeper_echo_kept: f64,
 }
 
 impl Coverage {
@@ -122,6 +128,7 @@ fn coverage(
     let mut near_kept = [0usize; 3];
     let mut kept = 0usize;
     let (mut whole, mut whole_kept) = (0usize, 0usize);
+    let (mut deeper, mut deeper_kept) = (0usize, 0usize);
     for pose in &poses.poses {
         let f = pose.frame_index;
         let m = &sim.true_image_to_world[f];
@@ -141,6 +148,21 @@ fn coverage(
             else {
                 continue;
             };
+            // Behind the first wall, once the beam has left the object (the duck's water-filled cavity;
+            // inside a solid object the far wall lies under all of it and echoes nothing).
+            let mut behind_water = false;
+            for v in (first_inside + 10).min(h)..h {
+                let (d, g) = phantom.distance_and_gradient(world(v));
+                behind_water |= d > 0.5;
+                if behind_water
+                    && d.abs() <= 0.3
+                    && g.normalize().dot(beam).abs() >= 30f64.to_radians().cos()
+                    && sim.sequence.pixel_f32(f, u, v) >= 60.0
+                {
+                    deeper += 1;
+                    deeper_kept += (mask[v * w + u] != 0) as usize;
+                }
+            }
             for v in 0..h.min(first_inside + 10) {
                 let (d, g) = phantom.distance_and_gradient(world(v));
                 let cos = g.normalize().dot(beam).abs();
@@ -156,7 +178,7 @@ fn coverage(
     let all = w * h * poses.poses.len();
     eprintln!(
         "{} frames; visible-surface pixels kept {near_kept:?} of {near:?} (30, 45, 60 deg), kept {kept}/{all}; \
-         whole surface kept {whole_kept} of {whole}",
+         whole surface kept {whole_kept} of {whole}; deeper walls' echoes kept {deeper_kept} of {deeper}",
         poses.poses.len()
     );
     assert!(
@@ -172,6 +194,11 @@ fn coverage(
             .collect(),
         kept_all: kept as f64 / all as f64,
         whole_surface_kept: whole_kept as f64 / whole.max(1) as f64,
+        deeper_echo_kept: if deeper == 0 {
+            f64::NAN
+        } else {
+            deeper_kept as f64 / deeper as f64
+        },
     }
 }
 
@@ -231,7 +258,8 @@ fn segment_with(
 /// The segmentation issue asks for >= 99 % of the pixels within 1 mm of the true surface. Taken
 /// literally (any angle, in the object's shadow or not) no band built from echoes can hold them: about
 /// half return no echo (`Coverage::whole_surface_kept`, printed). So it is read on the surface the beam
-/// sees, facing it within 45 degrees. The simulator's echo is `R cos^12(theta)` plus a weak diffuse term:
+/// sees, facing it within 45 degrees: the first wall each beam meets, here, and the walls seen behind it
+/// across water (`Coverage::deeper_echo_kept`, `paper_edgels_keep_the_wall_behind_the_first`). The simulator's echo is `R cos^12(theta)` plus a weak diffuse term:
 /// on the sphere, mean grey at the boundary / 1-3 mm inside / 1-3 mm above in water is 127 / 26 / 5 at
 /// 0-10 degrees, 50 / 24 / 15 at 30-40, 28 / 25 / 16 at 40-50 and 25 / 25 / 16 at 50-60 degrees: from 40
 /// degrees on, the surface is only the step from water to the object's own speckle, so 45 degrees
@@ -240,8 +268,8 @@ fn segment_with(
 /// ignored, keeps that as an executable record). Within 45 degrees the result also depends on the frame
 /// and the first band: on the simulator's own, larger frame (`DEFAULT_PASS`) chained edgels keep 99.1 %
 /// / 98.6 % of the duck's (auto / polygon), and 99.1 % with either first band once the backward pass is
-/// on (`chained_edgels_with_backward_pass_meet_the_target_on_every_pass`); what the other option sets
-/// keep on every pass is the strong echo, within 30 degrees (`default_pass_*`).
+/// on (`chained_edgels_with_backward_pass_keep_the_first_wall_on_every_pass`); what the other option
+/// sets keep on every pass is the strong echo, within 30 degrees (`default_pass_*`).
 fn assert_coverage(c: &Coverage, min_near_kept: &[(f64, f64)]) {
     assert!(c.kept_all <= 0.30, "kept {} of all pixels", c.kept_all);
     for &(angle, min) in min_near_kept {
@@ -372,15 +400,17 @@ fn default_pass_strong_echo_kept_in_a_narrow_band() {
     }
 }
 
-/// The segmentation issue's target, ">= 99 % of the pixels within 1 mm of the true surface in <= 30 % of
-/// all pixels", read on the surface the beam can see (see `assert_coverage`: within 45 degrees, beyond
-/// which the simulated boundary returns no echo), met by one option set on every pass measured, both
-/// phantoms, both first bands: `--chain-edgels --backward-pass`. Measured: small pass, sphere 100 % in
-/// 26.8 % / 26.7 % of the pixels (auto / polygon), duck 100 % / 99.9 % in 25.6 % / 24.1 %; the
-/// simulator's own pass, sphere 100 % in 18.4 % / 18.4 %, duck 99.09 % / 99.09 % in 23.7 % / 23.7 %
-/// (without the backward pass the duck's polygon band keeps 98.6 % there).
+/// The first wall each beam meets, with `--chain-edgels --backward-pass`, on every pass measured, both
+/// phantoms, both first bands: at least 99 % of it within 1 mm, facing the beam within 45 degrees (see
+/// `assert_coverage`), in at most 30 % of the pixels. Measured: small pass, sphere 100 % in 26.8 % /
+/// 26.7 % of the pixels (auto / polygon), duck 100 % / 99.9 % in 25.6 % / 24.1 %; the simulator's own
+/// pass, sphere 100 % in 18.4 % / 18.4 %, duck 99.09 % / 99.09 % in 23.7 % / 23.7 % (without the
+/// backward pass the duck's polygon band keeps 98.6 % there). This is not the segmentation issue's
+/// target met: chained edgels are one per column, so behind the duck's top wall they keep only 34-60 %
+/// of its cavity floor's echoes (`Coverage::deeper_echo_kept`, printed; the paper's edgels keep 86-99 %,
+/// `paper_edgels_keep_the_wall_behind_the_first`).
 #[test]
-fn chained_edgels_with_backward_pass_meet_the_target_on_every_pass() {
+fn chained_edgels_with_backward_pass_keep_the_first_wall_on_every_pass() {
     for kind in [PhantomKind::Sphere, PhantomKind::Duck] {
         for pass in [small_pass(&kind), DEFAULT_PASS] {
             let phantom_pass = PhantomPass::new(kind.clone(), pass);
@@ -391,6 +421,30 @@ fn chained_edgels_with_backward_pass_meet_the_target_on_every_pass() {
                 );
             }
         }
+    }
+}
+
+/// The duck's cavity floor, seen through its top wall across the water inside: the paper's M largest
+/// edgels (the defaults) keep its echoes (`Coverage::deeper_echo_kept`). Measured: the simulator's own
+/// pass 99.0 % with either first band; the small pass (split into six sweeps, each starting from the
+/// first band again) 95.4 % from the automatic band and 86.2 % from a polygon drawn around the top wall
+/// alone, where the band reaches the floor only after a frame or two. With `--smoothing-mm 1
+/// --edgel-floor 0.4`: 98.2 % / 88.3 % / 76.1 %; chained edgels: 30-60 %.
+#[test]
+fn paper_edgels_keep_the_wall_behind_the_first() {
+    for (pass, polygon, min_kept) in [
+        (DEFAULT_PASS, false, 0.98),
+        (DEFAULT_PASS, true, 0.98),
+        (small_pass(&PhantomKind::Duck), false, 0.94),
+        (small_pass(&PhantomKind::Duck), true, 0.85),
+    ] {
+        let c =
+            PhantomPass::new(PhantomKind::Duck, pass).coverage(polygon, &SegmentOptions::default());
+        assert!(
+            c.deeper_echo_kept >= min_kept,
+            "{pass:?}, polygon {polygon}: kept {} of the deeper wall's echoes",
+            c.deeper_echo_kept
+        );
     }
 }
 
