@@ -28,10 +28,14 @@ pub struct SegmentArgs {
     /// Find the initial band automatically (bright connected echo structures).
     #[arg(long)]
     pub auto_init: bool,
-    /// Speckle-robust edgels (beyond the paper): one per column, chained along the boundary with
-    /// hysteresis, short chains dropped; smoothing 1 mm unless given.
+    /// Speckle-robust edgels (beyond the paper): chained along the boundary with hysteresis, one per
+    /// column in each layer (--chain-layers), short chains dropped; smoothing 1 mm unless given.
     #[arg(long)]
     pub chain_edgels: bool,
+    /// With --chain-edgels: how many boundaries one column may cross, each chained on its own (a wall
+    /// seen through another, as a hollow organ's far wall through its near one); 1 = one per column.
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
+    pub chain_layers: u32,
     /// After each sweep, propagate the band back from its last frame too and keep the union (beyond
     /// the paper): an echo entering the view is kept at full width on its first frame.
     #[arg(long)]
@@ -93,11 +97,14 @@ impl SegmentArgs {
     }
 
     pub fn options(&self) -> SegmentOptions {
-        let defaults = if self.chain_edgels {
+        let mut defaults = if self.chain_edgels {
             SegmentOptions::chained()
         } else {
             SegmentOptions::default()
         };
+        if let Some(chaining) = defaults.edgel_chaining.as_mut() {
+            chaining.layers = self.chain_layers as usize;
+        }
         let length = |px: Option<f64>, mm: Option<f64>, default: Length| match (px, mm) {
             (Some(p), _) => Length::Px(p),
             (None, Some(m)) => Length::Mm(m),

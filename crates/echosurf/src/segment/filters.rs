@@ -101,6 +101,12 @@ pub struct EdgelSelection {
     pub link_rows: usize,
     /// With `per_column`: chains spanning fewer columns are dropped (speckle grains are short).
     pub min_chain_columns: usize,
+    /// With `per_column`: how many boundaries one column may cross (a wall seen through another, as a
+    /// hollow organ's far wall through its near one). Each layer after the first takes, per column, the
+    /// strongest candidate more than `layer_gap_rows` from the edgels already kept there and chains
+    /// those under the same floor. 1 = one boundary per column.
+    pub layers: usize,
+    pub layer_gap_rows: usize,
 }
 
 /// One edgel: a local maximum along its column of the vertical gradient magnitude.
@@ -204,7 +210,9 @@ pub fn strongest_column_edgels(
 }
 
 /// Selection on one candidate per column (`best[u]`): the M strongest, then the relative floor with
-/// hysteresis along chains of neighbouring columns. Returns the reference strength (top 5 %).
+/// hysteresis along chains of neighbouring columns; then, for each further layer, the same on the next
+/// candidate of each column (see [`EdgelSelection::layers`]). Returns the reference strength (top 5 %
+/// of the first layer).
 fn chained_column_edgels(
     best: &[Option<Edgel>],
     columns: &[Vec<Edgel>],
@@ -225,16 +233,87 @@ fn chained_column_edgels(
     ranked.truncate(selection.count);
     let reference = ranked[ranked.len() / 20].strength;
     let floor = selection.relative_floor * reference.max(selection.reference_at_least);
-    // Columns whose candidate survived the M cut.
-    let mut in_m = vec![false; width];
-    for e in &ranked {
-        in_m[e.index as usize % width] = true;
-    }
     let weak_floor = if selection.link_rows == 0 {
         floor
     } else {
         floor * selection.weak_fraction.min(1.0)
     };
+    let row = |e: &Edgel| (e.index as usize / width) as i64;
+    let mut layer_best = best.to_vec();
+    // Per column, the candidates a later layer may not take: every earlier layer's candidate, and the
+    // rows of the edgels kept so far.
+    let mut offered: Vec<Vec<u32>> = vec![Vec::new(); width];
+    let mut kept_rows: Vec<Vec<i64>> = vec![Vec::new(); width];
+    for layer in 0..selection.layers.max(1) {
+        let before = out.len();
+        chain_layer(
+            &layer_best,
+            columns,
+            width,
+            selection,
+            [floor, weak_floor],
+            out,
+        );
+        if layer + 1 >= selection.layers {
+            break;
+        }
+        for e in &out[before..] {
+            kept_rows[e.index as usize % width].push(row(e));
+        }
+        let gap = selection.layer_gap_rows as i64;
+        let mut any = false;
+        for u in 0..width {
+            if let Some(b) = layer_best[u] {
+                offered[u].push(b.index);
+            }
+            layer_best[u] = columns[u]
+                .iter()
+                .filter(|e| {
+                    !offered[u].contains(&e.index)
+                        && kept_rows[u].iter().all(|&r| (row(e) - r).abs() > gap)
+                })
+                .max_by(|a, b| {
+                    a.strength
+                        .total_cmp(&b.strength)
+                        .then(b.index.cmp(&a.index))
+                })
+                .copied();
+            any |= layer_best[u].is_some();
+        }
+        if !any {
+            break;
+        }
+    }
+    out.sort_unstable_by_key(|e| e.index);
+    out.dedup_by_key(|e| e.index);
+    reference
+}
+
+/// One layer of [`chained_column_edgels`]: the M strongest of `best`, kept where they chain (runs of
+/// neighbouring columns within `link_rows` rows holding an edgel at or above `floors[0]`, edgels down
+/// to `floors[1]`), and the run ends followed beyond where the column's strongest candidate lies
+/// elsewhere.
+fn chain_layer(
+    best: &[Option<Edgel>],
+    columns: &[Vec<Edgel>],
+    width: usize,
+    selection: &EdgelSelection,
+    [floor, weak_floor]: [f32; 2],
+    out: &mut Vec<Edgel>,
+) {
+    let order = |a: &Edgel, b: &Edgel| {
+        b.strength
+            .total_cmp(&a.strength)
+            .then(a.index.cmp(&b.index))
+    };
+    let mut ranked: Vec<Edgel> = best.iter().flatten().copied().collect();
+    ranked.sort_unstable_by(order);
+    ranked.truncate(selection.count);
+    // Columns whose candidate survived the M cut.
+    let mut in_m = vec![false; width];
+    for e in &ranked {
+        in_m[e.index as usize % width] = true;
+    }
     let candidate = |u: usize| best[u].filter(|e| in_m[u] && e.strength >= weak_floor);
     let row = |e: &Edgel| (e.index as usize / width) as i64;
     // Runs of consecutive columns whose candidates are within `link_rows` rows of each other.
@@ -294,9 +373,6 @@ fn chained_column_edgels(
             }
         }
     }
-    out.sort_unstable_by_key(|e| e.index);
-    out.dedup_by_key(|e| e.index);
-    reference
 }
 
 /// Squared Euclidean distance (in px^2, exact integers) from every pixel to the nearest seed, computed
@@ -464,6 +540,8 @@ mod tests {
             weak_fraction: 1.0,
             link_rows: 0,
             min_chain_columns: 0,
+            layers: 1,
+            layer_gap_rows: 0,
         }
     }
 
@@ -488,6 +566,64 @@ mod tests {
         strongest_column_edgels(&s, w, h, &sel(100, EdgePolarity::Falling), &mut edgels);
         assert!(edgels.is_empty());
         strongest_column_edgels(&s, w, h, &sel(100, EdgePolarity::Both), &mut edgels);
+        assert_eq!(edgels.len(), w);
+    }
+
+    #[test]
+    fn a_second_layer_chains_a_wall_behind_the_first() {
+        // Two rising steps down every column: a strong one at row 10 and a weaker one at row 30.
+        let (w, h) = (40, 45);
+        let img: Vec<f32> = (0..w * h)
+            .map(|i| match i / w {
+                v if v >= 30 => 160.0,
+                v if v >= 10 => 100.0,
+                _ => 0.0,
+            })
+            .collect();
+        let mut tmp = Vec::new();
+        let mut s = Vec::new();
+        smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
+        let one = EdgelSelection {
+            count: w,
+            min_strength: 0.0,
+            relative_floor: 0.35,
+            reference_at_least: 0.0,
+            polarity: EdgePolarity::Rising,
+            per_column: true,
+            weak_fraction: 0.3,
+            link_rows: 3,
+            min_chain_columns: 8,
+            layers: 1,
+            layer_gap_rows: 8,
+        };
+        let rows = |edgels: &[Edgel]| -> Vec<usize> {
+            let mut r: Vec<usize> = edgels.iter().map(|e| e.index as usize / w).collect();
+            r.sort_unstable();
+            r.dedup();
+            r
+        };
+        let mut edgels = Vec::new();
+        strongest_column_edgels(&s, w, h, &one, &mut edgels);
+        assert_eq!(edgels.len(), w);
+        assert!(
+            rows(&edgels).iter().all(|r| (9..=10).contains(r)),
+            "{edgels:?}"
+        );
+        let two = EdgelSelection { layers: 2, ..one };
+        strongest_column_edgels(&s, w, h, &two, &mut edgels);
+        assert_eq!(edgels.len(), 2 * w);
+        assert!(
+            rows(&edgels)
+                .iter()
+                .all(|r| (9..=10).contains(r) || (29..=30).contains(r)),
+            "{edgels:?}"
+        );
+        // Within the gap of the first layer's edgels nothing more is taken.
+        let close = EdgelSelection {
+            layer_gap_rows: 25,
+            ..two
+        };
+        strongest_column_edgels(&s, w, h, &close, &mut edgels);
         assert_eq!(edgels.len(), w);
     }
 
@@ -521,6 +657,8 @@ mod tests {
             weak_fraction: 0.3,
             link_rows: 3,
             min_chain_columns: 8,
+            layers: 1,
+            layer_gap_rows: 0,
         };
         let mut edgels = Vec::new();
         strongest_column_edgels(&s, w, h, &chained, &mut edgels);
