@@ -118,6 +118,13 @@ pub struct Edgel {
     pub index: u32,
 }
 
+/// Strongest first; between equals the lower index (the upper row), so every choice is deterministic.
+fn strongest_first(a: &Edgel, b: &Edgel) -> std::cmp::Ordering {
+    b.strength
+        .total_cmp(&a.strength)
+        .then(a.index.cmp(&b.index))
+}
+
 /// The `count` strongest column edgels of a smoothed image: pixels whose central-difference vertical
 /// gradient (of the chosen polarity) exceeds `min_strength` and `relative_floor` times the strength of
 /// the edgel ranked at the top 5 % (or of `reference_at_least` if larger), and is a maximum along the column (echoes travel down the
@@ -186,19 +193,14 @@ pub fn strongest_column_edgels(
     for r in rows {
         out.extend(r);
     }
-    let order = |a: &Edgel, b: &Edgel| {
-        b.strength
-            .total_cmp(&a.strength)
-            .then(a.index.cmp(&b.index))
-    };
     if out.len() > count {
-        out.select_nth_unstable_by(count - 1, order);
+        out.select_nth_unstable_by(count - 1, strongest_first);
         out.truncate(count);
     }
     let mut reference = 0.0f32;
     if !out.is_empty() {
         // Robust maximum: the strength ranked at the top 5 % of the kept edgels.
-        out.sort_unstable_by(order);
+        out.sort_unstable_by(strongest_first);
         reference = out[out.len() / 20].strength;
         if relative_floor > 0.0 {
             let floor = relative_floor * reference.max(reference_at_least);
@@ -220,16 +222,11 @@ fn chained_column_edgels(
     selection: &EdgelSelection,
     out: &mut Vec<Edgel>,
 ) -> f32 {
-    let order = |a: &Edgel, b: &Edgel| {
-        b.strength
-            .total_cmp(&a.strength)
-            .then(a.index.cmp(&b.index))
-    };
     let mut ranked: Vec<Edgel> = best.iter().flatten().copied().collect();
     if ranked.is_empty() {
         return 0.0;
     }
-    ranked.sort_unstable_by(order);
+    ranked.sort_unstable_by(strongest_first);
     ranked.truncate(selection.count);
     let reference = ranked[ranked.len() / 20].strength;
     let floor = selection.relative_floor * reference.max(selection.reference_at_least);
@@ -272,11 +269,7 @@ fn chained_column_edgels(
                     !offered[u].contains(&e.index)
                         && kept_rows[u].iter().all(|&r| (row(e) - r).abs() > gap)
                 })
-                .max_by(|a, b| {
-                    a.strength
-                        .total_cmp(&b.strength)
-                        .then(b.index.cmp(&a.index))
-                })
+                .min_by(|a, b| strongest_first(a, b))
                 .copied();
             any |= layer_best[u].is_some();
         }
@@ -301,13 +294,8 @@ fn chain_layer(
     [floor, weak_floor]: [f32; 2],
     out: &mut Vec<Edgel>,
 ) {
-    let order = |a: &Edgel, b: &Edgel| {
-        b.strength
-            .total_cmp(&a.strength)
-            .then(a.index.cmp(&b.index))
-    };
     let mut ranked: Vec<Edgel> = best.iter().flatten().copied().collect();
-    ranked.sort_unstable_by(order);
+    ranked.sort_unstable_by(strongest_first);
     ranked.truncate(selection.count);
     // Columns whose candidate survived the M cut.
     let mut in_m = vec![false; width];
@@ -359,11 +347,7 @@ fn chain_layer(
                                     && (row(e) - row(&prev)).unsigned_abs() as usize
                                         <= selection.link_rows
                             })
-                            .max_by(|a, b| {
-                                a.strength
-                                    .total_cmp(&b.strength)
-                                    .then(b.index.cmp(&a.index))
-                            });
+                            .min_by(|a, b| strongest_first(a, b));
                         let Some(&e) = next else { break };
                         out.push(e);
                         prev = e;
@@ -569,6 +553,23 @@ mod tests {
         assert_eq!(edgels.len(), w);
     }
 
+    /// Chained edgels in one layer: floor 0.35, hysteresis to 0.3 of it over 3 rows, chains of 8 columns.
+    fn chained_selection(count: usize) -> EdgelSelection {
+        EdgelSelection {
+            count,
+            min_strength: 0.0,
+            relative_floor: 0.35,
+            reference_at_least: 0.0,
+            polarity: EdgePolarity::Rising,
+            per_column: true,
+            weak_fraction: 0.3,
+            link_rows: 3,
+            min_chain_columns: 8,
+            layers: 1,
+            layer_gap_rows: 0,
+        }
+    }
+
     #[test]
     fn a_second_layer_chains_a_wall_behind_the_first() {
         // Two rising steps down every column: a strong one at row 10 and a weaker one at row 30.
@@ -584,17 +585,8 @@ mod tests {
         let mut s = Vec::new();
         smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
         let one = EdgelSelection {
-            count: w,
-            min_strength: 0.0,
-            relative_floor: 0.35,
-            reference_at_least: 0.0,
-            polarity: EdgePolarity::Rising,
-            per_column: true,
-            weak_fraction: 0.3,
-            link_rows: 3,
-            min_chain_columns: 8,
-            layers: 1,
             layer_gap_rows: 8,
+            ..chained_selection(w)
         };
         let rows = |edgels: &[Edgel]| -> Vec<usize> {
             let mut r: Vec<usize> = edgels.iter().map(|e| e.index as usize / w).collect();
@@ -647,19 +639,7 @@ mod tests {
         let mut tmp = Vec::new();
         let mut s = Vec::new();
         smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
-        let chained = EdgelSelection {
-            count: w,
-            min_strength: 0.0,
-            relative_floor: 0.35,
-            reference_at_least: 0.0,
-            polarity: EdgePolarity::Rising,
-            per_column: true,
-            weak_fraction: 0.3,
-            link_rows: 3,
-            min_chain_columns: 8,
-            layers: 1,
-            layer_gap_rows: 0,
-        };
+        let chained = chained_selection(w);
         let mut edgels = Vec::new();
         strongest_column_edgels(&s, w, h, &chained, &mut edgels);
         let on_step = |e: &Edgel| (19..=20).contains(&(e.index as usize / w));
