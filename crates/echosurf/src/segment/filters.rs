@@ -222,12 +222,10 @@ fn chained_column_edgels(
     selection: &EdgelSelection,
     out: &mut Vec<Edgel>,
 ) -> f32 {
-    let mut ranked: Vec<Edgel> = best.iter().flatten().copied().collect();
+    let mut ranked = strongest_m(best, selection.count);
     if ranked.is_empty() {
         return 0.0;
     }
-    ranked.sort_unstable_by(strongest_first);
-    ranked.truncate(selection.count);
     let reference = ranked[ranked.len() / 20].strength;
     let floor = selection.relative_floor * reference.max(selection.reference_at_least);
     let weak_floor = if selection.link_rows == 0 {
@@ -245,6 +243,7 @@ fn chained_column_edgels(
         let before = out.len();
         chain_layer(
             &layer_best,
+            &ranked,
             columns,
             width,
             selection,
@@ -276,30 +275,37 @@ fn chained_column_edgels(
         if !any {
             break;
         }
+        ranked = strongest_m(&layer_best, selection.count);
     }
     out.sort_unstable_by_key(|e| e.index);
     out.dedup_by_key(|e| e.index);
     reference
 }
 
-/// One layer of [`chained_column_edgels`]: the M strongest of `best`, kept where they chain (runs of
-/// neighbouring columns within `link_rows` rows holding an edgel at or above `floors[0]`, edgels down
-/// to `floors[1]`), and the run ends followed beyond where the column's strongest candidate lies
-/// elsewhere.
+/// The M (`count`) strongest of the columns' candidates, strongest first.
+fn strongest_m(best: &[Option<Edgel>], count: usize) -> Vec<Edgel> {
+    let mut ranked: Vec<Edgel> = best.iter().flatten().copied().collect();
+    ranked.sort_unstable_by(strongest_first);
+    ranked.truncate(count);
+    ranked
+}
+
+/// One layer of [`chained_column_edgels`]: the M strongest of `best` (`ranked`), kept where they chain
+/// (runs of neighbouring columns within `link_rows` rows holding an edgel at or above `floors[0]`,
+/// edgels down to `floors[1]`), and the run ends followed beyond where the column's strongest candidate
+/// lies elsewhere.
 fn chain_layer(
     best: &[Option<Edgel>],
+    ranked: &[Edgel],
     columns: &[Vec<Edgel>],
     width: usize,
     selection: &EdgelSelection,
     [floor, weak_floor]: [f32; 2],
     out: &mut Vec<Edgel>,
 ) {
-    let mut ranked: Vec<Edgel> = best.iter().flatten().copied().collect();
-    ranked.sort_unstable_by(strongest_first);
-    ranked.truncate(selection.count);
     // Columns whose candidate survived the M cut.
     let mut in_m = vec![false; width];
-    for e in &ranked {
+    for e in ranked {
         in_m[e.index as usize % width] = true;
     }
     let candidate = |u: usize| best[u].filter(|e| in_m[u] && e.strength >= weak_floor);
