@@ -17,9 +17,9 @@ fn bench_segment(c: &mut Criterion) {
         [819.0, 400.0],
         [0.0, 400.0],
     ]);
-    // The defaults (the paper's edgels), and `--chain-edgels --backward-pass`, the options that keep
-    // the narrow band the segmentation issue asks for.
-    let narrow = SegmentOptions {
+    // The defaults (the paper's edgels), `--chain-edgels --backward-pass` and `--wall-band` (the same
+    // with the band in mm: every echoing wall in the share of pixels the segmentation issue asks for).
+    let chained_backward = SegmentOptions {
         backward_pass: true,
         ..SegmentOptions::chained()
     };
@@ -30,7 +30,8 @@ fn bench_segment(c: &mut Criterion) {
             InitialBand::Auto,
             SegmentOptions::default(),
         ),
-        ("chained_backward_820x616", band, narrow),
+        ("chained_backward_820x616", band.clone(), chained_backward),
+        ("wall_band_820x616", band, SegmentOptions::wall_band()),
     ] {
         group.bench_function(name, |b| {
             b.iter(|| {

@@ -32,10 +32,16 @@ pub struct SegmentArgs {
     /// column in each layer (--chain-layers), short chains dropped; smoothing 1 mm unless given.
     #[arg(long)]
     pub chain_edgels: bool,
-    /// With --chain-edgels: how many boundaries one column may cross, each chained on its own (a wall
-    /// seen through another, as a hollow organ's far wall through its near one); 1 = one per column.
+    /// With --chain-edgels or --wall-band: how many boundaries one column may cross, each chained
+    /// on its own (a wall seen through another, as a hollow organ's far wall through its near one);
+    /// 1 = one per column.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
     pub chain_layers: u32,
+    /// Every echoing wall in a band of fixed width in mm (beyond the paper): --chain-edgels (two
+    /// layers) --backward-pass --sigma-mm 2.5 --truncation-mm 5.33, the paper's 15 / 32 px at 1/6 mm
+    /// per pixel (the middle of its 0.1-0.2 mm/px); the widths, smoothing and layers can still be given.
+    #[arg(long)]
+    pub wall_band: bool,
     /// After each sweep, propagate the band back from its last frame too and keep the union (beyond
     /// the paper): an echo entering the view is kept at full width on its first frame.
     #[arg(long)]
@@ -45,7 +51,7 @@ pub struct SegmentArgs {
     /// stays on it; echoes that come into view away from the band are not picked up.
     #[arg(long)]
     pub follow_band: bool,
-    /// Gaussian smoothing before the gradients, in px (default 0.5 mm, 1 mm with --chain-edgels).
+    /// Gaussian smoothing before the gradients, in px (default 0.5 mm, 1 mm with --chain-edgels or --wall-band).
     #[arg(long, conflicts_with = "smoothing_mm")]
     pub smoothing_px: Option<f64>,
     /// Gaussian smoothing before the gradients, in mm.
@@ -97,7 +103,9 @@ impl SegmentArgs {
     }
 
     pub fn options(&self) -> SegmentOptions {
-        let mut defaults = if self.chain_edgels {
+        let mut defaults = if self.wall_band {
+            SegmentOptions::wall_band()
+        } else if self.chain_edgels {
             SegmentOptions::chained()
         } else {
             SegmentOptions::default()
@@ -130,7 +138,7 @@ impl SegmentArgs {
                 defaults.likelihood_truncation,
             ),
             threshold: self.threshold,
-            backward_pass: self.backward_pass,
+            backward_pass: self.backward_pass || defaults.backward_pass,
             follow_band: self.follow_band,
             ..defaults
         }

@@ -103,8 +103,9 @@ pub struct EdgelSelection {
     pub min_chain_columns: usize,
     /// With `per_column`: how many boundaries one column may cross (a wall seen through another, as a
     /// hollow organ's far wall through its near one). Each layer after the first takes, per column, the
-    /// strongest candidate more than `layer_gap_rows` from the edgels already kept there and chains
-    /// those under the same floor. 1 = one boundary per column.
+    /// strongest candidate more than `layer_gap_rows` from the edgels already kept there (where none is
+    /// kept: the strongest not offered to an earlier layer) and chains those under the same floor.
+    /// 1 = one boundary per column.
     pub layers: usize,
     pub layer_gap_rows: usize,
 }
@@ -235,8 +236,11 @@ fn chained_column_edgels(
     };
     let row = |e: &Edgel| (e.index as usize / width) as i64;
     let mut layer_best = best.to_vec();
-    // Per column, the candidates a later layer may not take: every earlier layer's candidate, and the
-    // rows of the edgels kept so far.
+    // Per column, what a later layer may not take: the rows near the edgels kept so far and, where
+    // nothing is kept yet, every earlier layer's candidate (it failed to chain; offer the next one).
+    // Where an edgel is kept, an earlier layer's candidate is offered again: the column's strongest
+    // candidate may have lain on a second wall and lost its chain to the first wall followed through
+    // from its neighbours (two walls of similar strength trade the top rank from column to column).
     let mut offered: Vec<Vec<u32>> = vec![Vec::new(); width];
     let mut kept_rows: Vec<Vec<i64>> = vec![Vec::new(); width];
     for layer in 0..selection.layers.max(1) {
@@ -265,7 +269,7 @@ fn chained_column_edgels(
             layer_best[u] = columns[u]
                 .iter()
                 .filter(|e| {
-                    !offered[u].contains(&e.index)
+                    (!kept_rows[u].is_empty() || !offered[u].contains(&e.index))
                         && kept_rows[u].iter().all(|&r| (row(e) - r).abs() > gap)
                 })
                 .min_by(|a, b| strongest_first(a, b))
@@ -623,6 +627,53 @@ mod tests {
         };
         strongest_column_edgels(&s, w, h, &close, &mut edgels);
         assert_eq!(edgels.len(), w);
+    }
+
+    #[test]
+    fn a_second_layer_takes_the_wall_that_lost_its_columns_to_the_first() {
+        // A step at row 10 across the frame and, over the right half, a second one at row 30 that is
+        // stronger than the first in every other block of 4 columns and weaker in the rest: each column's
+        // strongest candidate alternates between the walls, so neither forms a chain in the first layer
+        // there; the first wall is followed through from its run on the left.
+        let (w, h) = (60, 45);
+        let img: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (u, v) = (i % w, i / w);
+                let floor = if (u / 4) % 2 == 0 { 130.0 } else { 70.0 };
+                match v {
+                    v if v >= 30 && u >= 30 => 100.0 + floor,
+                    v if v >= 10 => 100.0,
+                    _ => 0.0,
+                }
+            })
+            .collect();
+        let mut tmp = Vec::new();
+        let mut s = Vec::new();
+        smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
+        let two = EdgelSelection {
+            layers: 2,
+            layer_gap_rows: 8,
+            ..chained_selection(w)
+        };
+        let mut edgels = Vec::new();
+        strongest_column_edgels(&s, w, h, &two, &mut edgels);
+        let at = |rows: std::ops::RangeInclusive<usize>| -> Vec<usize> {
+            edgels
+                .iter()
+                .filter(|e| rows.contains(&(e.index as usize / w)))
+                .map(|e| e.index as usize % w)
+                .collect()
+        };
+        assert_eq!(at(9..=10), (0..w).collect::<Vec<_>>(), "{edgels:?}");
+        // Every column of the second wall, including those whose strongest candidate it was (offered to
+        // the first layer, not kept there).
+        // (Column 29 holds the step's edge blurred by the smoothing.)
+        let second = at(29..=30);
+        assert!(
+            (30..w).all(|u| second.contains(&u)) && second.iter().all(|&u| u >= 29),
+            "{edgels:?}"
+        );
+        assert_eq!(edgels.len(), w + second.len());
     }
 
     #[test]

@@ -49,10 +49,12 @@
 //! sweep the band is propagated back from its last frame as well and the union kept, so an echo that
 //! enters the view gets the full band on its first frame, not only the narrow band of an unconfirmed
 //! edgel. Measured on the simulated duck from a polygon init (chained edgels, 24-frame pass): visible
-//! surface within 45 degrees of the beam 99.5 % -> 99.9 %, pixels kept 22.7 % -> 24.1 %; in `extract`
-//! (duck, seed 1, iso sheet) the inner wall's probe side within 20-30 degrees of the beam 0.933 -> 0.952
-//! and mean distance to the truth 0.56 -> 0.51 mm, but 19 pieces instead of 13 and +0.2 s, so it is not
-//! the default.
+//! surface within 45 degrees of the beam 99.5 % -> 100 %, pixels kept 22.7 % -> 24.8 % (one layer); the
+//! cavity floor's echoes behind the top wall 78.1 % -> 99.8 % (two layers). In `extract` (paper's edgels,
+//! duck seeds 1-8 and hand seeds 1-3) it is mixed: the duck's worst probe-side completeness rises, the
+//! hand's seeds 2 and 3 fall and p95 widens by up to 0.04 mm (docs/pipeline.md), so it is not the default.
+//! [`SegmentOptions::wall_band`] (CLI `--wall-band`) bundles it with chained edgels in two layers
+//! and the paper's band width in mm: every echoing wall in at most 27 % of the pixels (simulated).
 //!
 //! **Speckle-robust edgels** ([`SegmentOptions::chained`], CLI `--chain-edgels`; off by default, so the
 //! extract pipeline keeps its behaviour). Where a boundary's echo is faint (at the top of the image, or
@@ -174,7 +176,11 @@ pub struct SegmentOptions {
     /// Beyond the paper: after each sweep, propagate the band back from its last frame to its first and
     /// keep the union of both passes. The forward pass admits an echo that was not in the carried band
     /// only narrowly on the frame it appears (`C0` gives 11.4 px instead of 29.2 px around its edgels)
-    /// and at full width from the next frame on; going back, that frame inherits the full band.
+    /// and at full width from the next frame on; going back, that frame inherits the full band. Where
+    /// the forward pass carries the band from one sweep into the next (a given first band, see
+    /// [`InitialBand`]), the backward pass carries it back from the next sweep's first frame into this
+    /// sweep's last, so an echo entering on a sweep's last frame (or on the one frame of a sweep that
+    /// holds only one) gets the full band too.
     #[serde(default)]
     pub backward_pass: bool,
     /// The paper's step 3 read strictly ("likelihood for pixels in B_i"): edgels outside the carried
@@ -225,6 +231,23 @@ impl SegmentOptions {
             smoothing_sigma: Length::Mm(1.0),
             edgel_chaining: Some(EdgelChaining::default()),
             ..Default::default()
+        }
+    }
+
+    /// Every echoing wall in a band of fixed width in mm (beyond the paper; CLI `--wall-band`):
+    /// [`Self::chained`] edgels in two layers (a wall seen through another), the backward pass, and the
+    /// paper's 15 px / 32 px taken at 1/6 mm per pixel (the middle of its 0.1-0.2 mm/px): sigma 2.5 mm,
+    /// truncation 5.33 mm. At the simulator's 0.2 mm/px the paper's pixels reach 5.8 mm around each wall
+    /// and two walls take 32 % of the duck's pixels; this keeps 99.3-99.6 % of its cavity floor's echoes
+    /// and 99.8-100 % of its top wall in 26.2-26.4 % (tests/segment_simulated.rs). At finer pixels it is the
+    /// wider band: the PLUS spine sweep (0.082 mm/px) keeps 13.8 % of its pixels, 5.4 % with chained
+    /// edgels and the paper's pixels.
+    pub fn wall_band() -> Self {
+        SegmentOptions {
+            likelihood_sigma: Length::Mm(15.0 / 6.0),
+            likelihood_truncation: Length::Mm(32.0 / 6.0),
+            backward_pass: true,
+            ..Self::chained()
         }
     }
 
@@ -339,8 +362,8 @@ impl Default for EdgelChaining {
 /// polygon) is joined by the band carried from the previous sweep's last frame: a sweep break is a
 /// jump of the probe (> 5 mm) or a pause, often within one pass over the same anatomy, where a band
 /// drawn on the first frame alone would cut the boundary short (simulated duck, one pass of 24 frames
-/// that the 5 mm rule splits into six: visible surface within 45 degrees kept 98.1 % -> 99.5 %).
-/// The automatic band is found afresh.
+/// that the 5 mm rule splits into six: visible surface within 45 degrees kept 98.1 % -> 99.5 %); the
+/// backward pass carries it back the same way. The automatic band is found afresh.
 #[derive(Debug, Clone, PartialEq)]
 pub enum InitialBand {
     /// A mask of the frame's size, row-major, true = band.
@@ -717,22 +740,35 @@ pub fn segment_sequence(
     progress.start("segment", total as u64);
     let mut done = 0u64;
     let mut seen = BTreeSet::new();
-    for sweep in sweeps {
-        // (position in the sweep, frame): a frame posed twice is segmented once, where it first comes.
-        let frames: Vec<(usize, usize)> = sweep
-            .enumerate()
-            .filter_map(|(k, pose_index)| {
-                let frame = poses.poses[pose_index].frame_index;
-                seen.insert(frame).then_some((k, frame))
-            })
-            .collect();
-        for &(k, frame) in &frames {
+    // Per sweep, (position in the sweep, frame): a frame posed twice is segmented once, where it first
+    // comes.
+    let sweep_frames: Vec<Vec<(usize, usize)>> = sweeps
+        .into_iter()
+        .map(|sweep| {
+            sweep
+                .enumerate()
+                .filter_map(|(k, pose_index)| {
+                    let frame = poses.poses[pose_index].frame_index;
+                    seen.insert(frame).then_some((k, frame))
+                })
+                .collect()
+        })
+        .collect();
+    for frames in &sweep_frames {
+        for &(k, frame) in frames {
             run.forward(k, frame, init_crop.as_deref());
             done += 1;
             progress.advance(done);
         }
-        if options.backward_pass {
-            run.backward(&frames);
+    }
+    if options.backward_pass {
+        // Back over the sweeps in reverse. Where the forward pass carried the band from one sweep into
+        // the next (a given first band), the backward pass carries it back from the next sweep's first
+        // frame into this one's last.
+        let mut carried: Option<Vec<bool>> = None;
+        for frames in sweep_frames.iter().rev().filter(|f| !f.is_empty()) {
+            let first_band = run.backward(frames, carried.as_deref());
+            carried = init_crop.is_some().then_some(first_band);
         }
     }
     progress.finish();
@@ -992,12 +1028,27 @@ impl BandPropagation<'_> {
         std::mem::swap(&mut self.prior, &mut self.band);
     }
 
-    /// The backward pass over a sweep just propagated forward: from its last frame back to its first,
-    /// each frame's mask joined by the band carried back. The band carried to the next sweep stays the
-    /// last frame's.
-    fn backward(&mut self, frames: &[(usize, usize)]) {
+    /// The backward pass over one sweep, after the forward pass: from its last frame back to its first,
+    /// each frame's mask joined by the band carried back from the frame after it. The last frame has a
+    /// frame after it only where `carried` (the next sweep's first frame's band) is given; the band
+    /// carried on from it is then its forward band joined by what that step kept. Returns the band of the
+    /// sweep's first frame, for the sweep before.
+    fn backward(&mut self, frames: &[(usize, usize)], carried: Option<&[bool]>) -> Vec<bool> {
         let width = self.sequence.width;
-        let last_band = self.prior.clone();
+        let Some(&(_, last)) = frames.last() else {
+            return Vec::new();
+        };
+        band_from_mask(&self.masks[last], self.clip, width, &mut self.prior);
+        if let Some(carried) = carried {
+            let p = &self.propagator;
+            load_smoothed(&mut self.ws, self.sequence, last, self.clip, &p.taps);
+            if p.step(&mut self.ws, carried, &mut self.band) >= p.min_edgels_in_band {
+                add_to_mask(&self.band, self.clip, width, &mut self.masks[last]);
+                for (p, &b) in self.prior.iter_mut().zip(&self.band) {
+                    *p |= b;
+                }
+            }
+        }
         for &(_, frame) in frames.iter().rev().skip(1) {
             let p = &self.propagator;
             load_smoothed(&mut self.ws, self.sequence, frame, self.clip, &p.taps);
@@ -1010,7 +1061,7 @@ impl BandPropagation<'_> {
             }
             std::mem::swap(&mut self.prior, &mut self.band);
         }
-        self.prior = last_band;
+        self.prior.clone()
     }
 }
 
