@@ -523,6 +523,13 @@ mod tests {
         assert!(out[15 * w + 15] > out[15 * w + 16]);
     }
 
+    /// `img` (w x h) smoothed with a Gaussian of `sigma_px`.
+    fn smoothed(img: &[f32], w: usize, h: usize, sigma_px: f64) -> Vec<f32> {
+        let (mut tmp, mut out) = (Vec::new(), Vec::new());
+        smooth(img, w, h, &gaussian_taps(sigma_px), &mut tmp, &mut out);
+        out
+    }
+
     fn sel(count: usize, polarity: EdgePolarity) -> EdgelSelection {
         EdgelSelection {
             count,
@@ -545,9 +552,7 @@ mod tests {
         let img: Vec<f32> = (0..w * h)
             .map(|i| if i / w >= 10 { 100.0 } else { 0.0 })
             .collect();
-        let mut tmp = Vec::new();
-        let mut s = Vec::new();
-        smooth(&img, w, h, &gaussian_taps(1.5), &mut tmp, &mut s);
+        let s = smoothed(&img, w, h, 1.5);
         let mut edgels = Vec::new();
         strongest_column_edgels(&s, w, h, &sel(100, EdgePolarity::Rising), &mut edgels);
         assert_eq!(edgels.len(), w);
@@ -591,9 +596,7 @@ mod tests {
                 _ => 0.0,
             })
             .collect();
-        let mut tmp = Vec::new();
-        let mut s = Vec::new();
-        smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
+        let s = smoothed(&img, w, h, 1.0);
         let one = EdgelSelection {
             layer_gap_rows: 8,
             ..chained_selection(w)
@@ -647,9 +650,7 @@ mod tests {
                 }
             })
             .collect();
-        let mut tmp = Vec::new();
-        let mut s = Vec::new();
-        smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
+        let s = smoothed(&img, w, h, 1.0);
         let two = EdgelSelection {
             layers: 2,
             layer_gap_rows: 8,
@@ -693,9 +694,7 @@ mod tests {
                 img[v * w + u] = 150.0;
             }
         }
-        let mut tmp = Vec::new();
-        let mut s = Vec::new();
-        smooth(&img, w, h, &gaussian_taps(1.0), &mut tmp, &mut s);
+        let s = smoothed(&img, w, h, 1.0);
         let chained = chained_selection(w);
         let mut edgels = Vec::new();
         strongest_column_edgels(&s, w, h, &chained, &mut edgels);
