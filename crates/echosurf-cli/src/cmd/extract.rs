@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use echosurf::io::{self, ReferenceChoice};
+use echosurf::io;
 use echosurf::pipeline::{
     self, ExtractOptions, ExtractOutput, IsoLevels, Method, Sheet, VoxelRouteOptions, WeakEchoes,
 };
@@ -13,7 +13,7 @@ use echosurf::segment::InitialBand;
 use echosurf::surface::{SheetOptions, SurfaceOptions};
 
 use super::outputs::{Holds, Output, check_outputs, output};
-use super::segment::SegmentArgs;
+use super::segment::{SegmentArgs, world_choice};
 use crate::progress::BarProgress;
 
 #[derive(Debug, clap::Args)]
@@ -317,15 +317,6 @@ pub(crate) fn posed_sequence(
     let calibration = config.map(io::read_calibration).transpose()?;
     let poses = io::resolve_poses(&sequence, calibration.as_ref(), world_choice(world)?, path)?;
     Ok((sequence, calibration, poses))
-}
-
-pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
-    Ok(match text.to_ascii_lowercase().as_str() {
-        "auto" => ReferenceChoice::Auto,
-        "tracker" => ReferenceChoice::Tracker,
-        "reference" => ReferenceChoice::Reference,
-        other => anyhow::bail!("--world {other}: expected auto, tracker or reference"),
-    })
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {

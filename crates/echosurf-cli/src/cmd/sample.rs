@@ -9,9 +9,10 @@ use echosurf::pipeline::{self, ExtractOptions};
 use echosurf::resources::StageMeter;
 use echosurf::segment::InitialBand;
 
-use super::extract::{echo_margin, world_choice};
+use super::extract::echo_margin;
 use super::outputs::{Holds, check_outputs, output};
 use super::segment::SegmentArgs;
+use super::segment::world_choice;
 use crate::progress::BarProgress;
 
 #[derive(Debug, clap::Args)]

@@ -12,6 +12,16 @@ use echosurf::segment::{
 use super::outputs::{Holds, check_outputs, output};
 use crate::progress::BarProgress;
 
+/// `--world`: auto, tracker or reference (case-insensitive).
+pub(crate) fn world_choice(text: &str) -> anyhow::Result<ReferenceChoice> {
+    Ok(match text.to_ascii_lowercase().as_str() {
+        "auto" => ReferenceChoice::Auto,
+        "tracker" => ReferenceChoice::Tracker,
+        "reference" => ReferenceChoice::Reference,
+        other => anyhow::bail!("--world {other}: expected auto, tracker or reference"),
+    })
+}
+
 /// Options shared by `segment` and `sample`: the sequence, its calibration, the initial band and the
 /// paper's parameters.
 #[derive(Debug, clap::Args)]
@@ -152,12 +162,7 @@ impl SegmentArgs {
         io::PoseResolution,
         echosurf::segment::BandMasks,
     )> {
-        let world = match self.world.to_ascii_lowercase().as_str() {
-            "auto" => ReferenceChoice::Auto,
-            "tracker" => ReferenceChoice::Tracker,
-            "reference" => ReferenceChoice::Reference,
-            other => anyhow::bail!("--world {other}: expected auto, tracker or reference"),
-        };
+        let world = world_choice(&self.world)?;
         let sequence = io::read_sequence(&self.sequence)?;
         let calibration = io::read_calibration(&self.config)?;
         let poses = io::resolve_poses(&sequence, Some(&calibration), world, &self.sequence)?;
