@@ -22,6 +22,20 @@ fn extract(seq: &Path, config: &Path, out: &Path, extra: &[&str]) -> Output {
 }
 
 /// `echosurf compare MESH TRUTH --json`, which must succeed on an oriented manifold mesh.
+/// `extract` of the ridge sheet from 10,000 samples with `extra`, which must succeed; returns what it
+/// printed.
+fn extract_ridge(seq: &Path, config: &Path, out: &Path, extra: &[&str]) -> String {
+    let mut args = vec!["--max-samples", "10000", "--sheet", "ridge"];
+    args.extend_from_slice(extra);
+    let run = extract(seq, config, out, &args);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    String::from_utf8_lossy(&run.stdout).into_owned()
+}
+
 fn compare_manifold(mesh: &Path, truth: &Path) -> serde_json::Value {
     let cmp = echosurf(&[
         "compare",
@@ -420,25 +434,7 @@ fn trimming_the_rim_keeps_the_pieces_and_shortens_the_tail() {
     let mut scores = Vec::new();
     for (name, extra) in [("kept", "0"), ("trimmed", "1")] {
         let mesh = dir.path().join(format!("{name}.ply"));
-        let out = extract(
-            &seq,
-            &config,
-            &mesh,
-            &[
-                "--max-samples",
-                "10000",
-                "--sheet",
-                "ridge",
-                "--trim-rim",
-                extra,
-            ],
-        );
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let said = String::from_utf8_lossy(&out.stdout);
+        let said = extract_ridge(&seq, &config, &mesh, &["--trim-rim", extra]);
         assert_eq!(
             said.contains("rim triangles trimmed (1 ring)"),
             extra == "1",
@@ -475,26 +471,16 @@ fn triangles_far_from_every_echo_are_removed_and_reported() {
     for distance in ["0", "1.5", "0.5"] {
         let mesh = dir.path().join(format!("mesh_{distance}.ply"));
         let report = dir.path().join(format!("report_{distance}.json"));
-        let out = extract(
+        let said = extract_ridge(
             &seq,
             &config,
             &mesh,
             &[
-                "--max-samples",
-                "10000",
-                "--sheet",
-                "ridge",
                 "--max-echo-distance",
                 distance,
                 "--report",
                 report.to_str().unwrap(),
             ],
-        );
-        let said = String::from_utf8_lossy(&out.stdout);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
         );
         compare_manifold(&mesh, &truth);
         let report: serde_json::Value =
