@@ -19,23 +19,25 @@ fn inspect(args: &[&str]) -> Output {
     common::echosurf(&all)
 }
 
+/// `echosurf inspect ARGS`, which must succeed.
+fn inspect_ok(args: &[&str]) -> Output {
+    let mut all = vec!["inspect"];
+    all.extend_from_slice(args);
+    common::echosurf_ok(&all)
+}
+
 fn path_arg(name: &str) -> String {
     real(name).to_string_lossy().into_owned()
 }
 
 #[test]
 fn json_has_the_documented_keys_and_the_spine_box() {
-    let out = inspect(&[
+    let out = inspect_ok(&[
         &path_arg("SpinePhantomFreehand.igs.mha"),
         "--config",
         &path_arg(NN_MEAN),
         "--json",
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
     assert_eq!(v["frames"], 21);
     assert_eq!(v["valid_frames"], 21);
@@ -115,12 +117,7 @@ fn a_clip_rectangle_beyond_the_frames_is_pointed_out() {
     let nwire_config =
         path_arg("PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml");
     let clip_line = |sequence: &str| {
-        let out = inspect(&[&path_arg(sequence), "--config", &nwire_config]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let out = inspect_ok(&[&path_arg(sequence), "--config", &nwire_config]);
         let text = String::from_utf8_lossy(&out.stdout).into_owned();
         text.lines()
             .find(|l| l.trim_start().starts_with("clip "))
@@ -211,16 +208,11 @@ fn frames_in_one_plane_are_pointed_out() {
     // The Prostate video's frames share one pose: whatever the calibration, they hold no volume.
     let nwire_config =
         path_arg("PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml");
-    let out = inspect(&[
+    let out = inspect_ok(&[
         &path_arg("Prostate10_video.igs.mhd"),
         "--config",
         &nwire_config,
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
         text.contains("span mm     0.0 off the first frame's plane"),
@@ -244,18 +236,13 @@ fn a_frame_is_written_to_draw_the_first_band_on() {
 
     // By default the first frame of the first sweep, where --init's band is used; pixel for pixel.
     let first = dir.path().join("first.png");
-    let out = inspect(&[
+    let out = inspect_ok(&[
         &spine,
         "--config",
         &path_arg(NN_MEAN),
         "--frame-png",
         first.to_str().unwrap(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
         text.contains("frames      21") && text.contains("frame 0 written"),
@@ -267,7 +254,7 @@ fn a_frame_is_written_to_draw_the_first_band_on() {
 
     // Another frame; with --json the summary alone is on stdout.
     let last = dir.path().join("last.png");
-    let out = inspect(&[
+    let out = inspect_ok(&[
         &spine,
         "--json",
         "--frame",
@@ -275,11 +262,6 @@ fn a_frame_is_written_to_draw_the_first_band_on() {
         "--frame-png",
         last.to_str().unwrap(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["frames"], 21);
     assert!(String::from_utf8_lossy(&out.stderr).contains("frame 20 written"));
