@@ -1,10 +1,27 @@
 //! `echosurf reconstruct` end to end on the real spine sweep.
 
-use std::process::Command;
+use std::path::Path;
+
+mod common;
 
 #[path = "../../echosurf/tests/common/real_data.rs"]
 mod real_data;
 use real_data::real;
+
+/// `echosurf reconstruct SEQ --config CONFIG --out OUT EXTRA...`.
+fn reconstruct_args(seq: &Path, config: &Path, out: &Path, extra: &[&str]) -> Vec<String> {
+    let path = |p: &Path| p.display().to_string();
+    let mut args = vec![
+        "reconstruct".to_string(),
+        path(seq),
+        "--config".into(),
+        path(config),
+        "--out".into(),
+        path(out),
+    ];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    args
+}
 
 #[test]
 fn reconstructs_plus_reference_and_refuses_oversized_grids() {
@@ -12,20 +29,7 @@ fn reconstructs_plus_reference_and_refuses_oversized_grids() {
     let out = dir.path().join("spine.mha");
     let seq = real("SpinePhantomFreehand.igs.mha");
     let cfg = real("PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml");
-    let run = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .arg("reconstruct")
-        .arg(&seq)
-        .arg("--config")
-        .arg(&cfg)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    let run = common::echosurf_ok(&reconstruct_args(&seq, &cfg, &out, &[]));
     let stdout = String::from_utf8_lossy(&run.stdout);
     assert!(stdout.contains("147x106x105"), "{stdout}");
     // Defaults from the configuration (NN, MEAN, STICK) give PLUS's reference volume exactly.
@@ -43,16 +47,12 @@ fn reconstructs_plus_reference_and_refuses_oversized_grids() {
 
     // 0.01 mm spacing would need gigabytes: refused with a spacing that fits, nothing written.
     let big = dir.path().join("big.mha");
-    let run = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .arg("reconstruct")
-        .arg(&seq)
-        .arg("--config")
-        .arg(&cfg)
-        .arg("--out")
-        .arg(&big)
-        .args(["--spacing", "0.01", "--memory-budget", "50"])
-        .output()
-        .unwrap();
+    let run = common::echosurf(&reconstruct_args(
+        &seq,
+        &cfg,
+        &big,
+        &["--spacing", "0.01", "--memory-budget", "50"],
+    ));
     assert!(!run.status.success());
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(

@@ -1,6 +1,7 @@
 //! End-to-end tests of `echosurf render`.
 
-use std::process::Command;
+use std::path::Path;
+use std::process::Output;
 
 mod common;
 
@@ -12,6 +13,28 @@ mod png_pixels;
 mod real_data;
 use png_pixels::read_rgb_png;
 
+/// `echosurf render MESH --out OUT EXTRA...`.
+fn render_args<'a>(mesh: &'a Path, out: &'a Path, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec![
+        "render",
+        mesh.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    args
+}
+
+/// Runs `render` unchecked (for the refusals).
+fn render(mesh: &Path, out: &Path, extra: &[&str]) -> Output {
+    common::echosurf(&render_args(mesh, out, extra))
+}
+
+/// Runs `render`, which must succeed.
+fn render_ok(mesh: &Path, out: &Path, extra: &[&str]) -> Output {
+    common::echosurf_ok(&render_args(mesh, out, extra))
+}
+
 /// A pixel clearly red: red over twice its green and blue (the error maps' far end).
 fn clearly_red(p: &[u8]) -> bool {
     p[0] > 60 && p[0] as u32 > 2 * p[1].max(p[2]) as u32
@@ -22,21 +45,9 @@ fn render_writes_a_deterministic_png_of_the_requested_size() {
     let dir = tempfile::tempdir().unwrap();
     let mesh = dir.path().join("torus.ply");
     echosurf::io::write_mesh(&mesh, &torus(20.0, 6.0, 64, 32)).unwrap();
-    let render = |out: &std::path::Path| {
-        Command::new(env!("CARGO_BIN_EXE_echosurf"))
-            .args(["render", mesh.to_str().unwrap(), "--size", "240", "--out"])
-            .arg(out)
-            .output()
-            .unwrap()
-    };
     let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
     for path in [&a, &b] {
-        let out = render(path);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        render_ok(&mesh, path, &["--size", "240"]);
     }
     let bytes = std::fs::read(&a).unwrap();
     assert_eq!(bytes, std::fs::read(&b).unwrap());
@@ -47,11 +58,11 @@ fn render_writes_a_deterministic_png_of_the_requested_size() {
     assert_eq!((dimension(16), dimension(20)), (240, 240));
 
     // A missing mesh: an error naming it, and no picture.
-    let out = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .args(["render", "no-such-mesh.stl", "--out"])
-        .arg(dir.path().join("c.png"))
-        .output()
-        .unwrap();
+    let out = render(
+        Path::new("no-such-mesh.stl"),
+        &dir.path().join("c.png"),
+        &[],
+    );
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no-such-mesh.stl"));
     assert!(!dir.path().join("c.png").exists());
@@ -63,36 +74,26 @@ fn distance_to_a_truth_colours_the_picture() {
     let (mesh, truth) = (dir.path().join("mesh.ply"), dir.path().join("truth.ply"));
     echosurf::io::write_mesh(&mesh, &torus(20.0, 6.0, 64, 32)).unwrap();
     echosurf::io::write_mesh(&truth, &torus(20.0, 5.0, 64, 32)).unwrap();
-    let render = |extra: &[&str], out: &std::path::Path| {
-        Command::new(env!("CARGO_BIN_EXE_echosurf"))
-            .args(["render", mesh.to_str().unwrap(), "--size", "200"])
-            .args(extra)
-            .arg("--out")
-            .arg(out)
-            .output()
-            .unwrap()
-    };
+    let sized = |extra: &[&'static str]| [&["--size", "200"][..], extra].concat();
     let (plain, near, far) = (
         dir.path().join("plain.png"),
         dir.path().join("near.png"),
         dir.path().join("far.png"),
     );
-    assert!(render(&[], &plain).status.success());
+    render_ok(&mesh, &plain, &sized(&[]));
     // 1 mm apart: red on a 1 mm scale, green on a 2 mm one.
     for (scale, out) in [("1", &near), ("2", &far)] {
-        let run = render(
+        let run = render_ok(
+            &mesh,
+            out,
             &[
+                "--size",
+                "200",
                 "--distance-to",
                 truth.to_str().unwrap(),
                 "--scale-mm",
                 scale,
             ],
-            out,
-        );
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
         );
         let said = String::from_utf8_lossy(&run.stdout);
         assert!(said.contains("coloured by distance to"), "{said}");
@@ -129,7 +130,11 @@ fn distance_to_a_truth_colours_the_picture() {
     );
 
     // --scale-mm means nothing without --distance-to.
-    let out = render(&["--scale-mm", "2"], &dir.path().join("x.png"));
+    let out = render(
+        &mesh,
+        &dir.path().join("x.png"),
+        &sized(&["--scale-mm", "2"]),
+    );
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--distance-to"));
 }
@@ -160,17 +165,7 @@ fn frame_outlines_of_a_recording_are_drawn_over_the_mesh() {
     .unwrap();
     let yellow_pixels = |extra: &[&str]| {
         let out_png = dir.path().join("view.png");
-        let run = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-            .args(["render", mesh.to_str().unwrap(), "--size", "200", "--out"])
-            .arg(&out_png)
-            .args(extra)
-            .output()
-            .unwrap();
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
+        render_ok(&mesh, &out_png, &[&["--size", "200"][..], extra].concat());
         read_rgb_png(&out_png)
             .2
             .chunks_exact(3)
@@ -202,12 +197,7 @@ fn frame_outlines_of_a_recording_are_drawn_over_the_mesh() {
             "--outline-every",
         ),
     ] {
-        let run = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-            .args(["render", mesh.to_str().unwrap(), "--out"])
-            .arg(dir.path().join("bad.png"))
-            .args(&extra)
-            .output()
-            .unwrap();
+        let run = render(&mesh, &dir.path().join("bad.png"), &extra);
         assert!(!run.status.success(), "{extra:?}");
         let err = String::from_utf8_lossy(&run.stderr);
         assert!(err.contains(says), "{extra:?}: {err}");
