@@ -11,8 +11,7 @@ use echosurf::segment::InitialBand;
 
 use super::extract::echo_margin;
 use super::outputs::{Holds, check_outputs, output};
-use super::segment::SegmentArgs;
-use super::segment::world_choice;
+use super::segment::{SegmentArgs, world_choice};
 use crate::progress::BarProgress;
 
 #[derive(Debug, clap::Args)]

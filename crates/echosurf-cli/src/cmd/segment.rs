@@ -61,7 +61,8 @@ pub struct SegmentArgs {
     /// stays on it; echoes that come into view away from the band are not picked up.
     #[arg(long)]
     pub follow_band: bool,
-    /// Gaussian smoothing before the gradients, in px (default 0.5 mm, 1 mm with --chain-edgels or --wall-band).
+    /// Gaussian smoothing before the gradients, in px (default 0.5 mm, 1 mm with --chain-edgels or
+    /// --wall-band).
     #[arg(long, conflicts_with = "smoothing_mm")]
     pub smoothing_px: Option<f64>,
     /// Gaussian smoothing before the gradients, in mm.

@@ -667,8 +667,7 @@ mod tests {
         };
         assert_eq!(at(9..=10), (0..w).collect::<Vec<_>>(), "{edgels:?}");
         // Every column of the second wall, including those whose strongest candidate it was (offered to
-        // the first layer, not kept there).
-        // (Column 29 holds the step's edge blurred by the smoothing.)
+        // the first layer, not kept there); column 29 holds its edge blurred by the smoothing.
         let second = at(29..=30);
         assert!(
             (30..w).all(|u| second.contains(&u)) && second.iter().all(|&u| u >= 29),
