@@ -767,8 +767,8 @@ pub fn segment_sequence(
         // frame into this one's last.
         let mut carried: Option<Vec<bool>> = None;
         for frames in sweep_frames.iter().rev().filter(|f| !f.is_empty()) {
-            let first_band = run.backward(frames, carried.as_deref());
-            carried = init_crop.is_some().then_some(first_band);
+            run.backward(frames, carried.as_deref());
+            carried = init_crop.is_some().then(|| run.prior.clone());
         }
     }
     progress.finish();
@@ -1031,12 +1031,12 @@ impl BandPropagation<'_> {
     /// The backward pass over one sweep, after the forward pass: from its last frame back to its first,
     /// each frame's mask joined by the band carried back from the frame after it. The last frame has a
     /// frame after it only where `carried` (the next sweep's first frame's band) is given; the band
-    /// carried on from it is then its forward band joined by what that step kept. Returns the band of the
-    /// sweep's first frame, for the sweep before.
-    fn backward(&mut self, frames: &[(usize, usize)], carried: Option<&[bool]>) -> Vec<bool> {
+    /// carried on from it is then its forward band joined by what that step kept. Leaves the band of the
+    /// sweep's first frame in `prior`, for the sweep before.
+    fn backward(&mut self, frames: &[(usize, usize)], carried: Option<&[bool]>) {
         let width = self.sequence.width;
         let Some(&(_, last)) = frames.last() else {
-            return Vec::new();
+            return;
         };
         band_from_mask(&self.masks[last], self.clip, width, &mut self.prior);
         if let Some(carried) = carried {
@@ -1061,7 +1061,6 @@ impl BandPropagation<'_> {
             }
             std::mem::swap(&mut self.prior, &mut self.band);
         }
-        self.prior.clone()
     }
 }
 
