@@ -514,6 +514,12 @@ fn print_sample_counts(c: &pipeline::StageCounts, fit: Option<&echosurf::rbf::Fi
         ),
         _ => format!("{} centres", c.centres),
     };
+    if c.bone_sweep {
+        println!(
+            "bone: bright echoes over an acoustic shadow in most frames, the probe on tissue: the band is the \
+             bone's echo, fitted against each echo's own contrast (--bone never: the paper's band)"
+        );
+    }
     println!(
         "{} of {} frames used; kept {} of {} pixels ({:.1}%); {} samples -> {model}",
         c.frames_used,

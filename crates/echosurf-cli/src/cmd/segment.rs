@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use echosurf::io::{self, ReferenceChoice};
+use echosurf::segment::bone::BoneMode;
 use echosurf::segment::{
     InitialBand, Length, SegmentOptions, default_preview_frames, segment_sequence,
     write_band_preview,
@@ -61,6 +62,11 @@ pub struct SegmentArgs {
     /// stays on it; echoes that come into view away from the band are not picked up.
     #[arg(long)]
     pub follow_band: bool,
+    /// Bone: `auto` segments a sweep made in contact with tissue whose frames show bright echoes over
+    /// an acoustic shadow as bone (the band is the bone's surface, not the tissue under the probe);
+    /// `always` or `never` decide instead. Only with the automatic first band.
+    #[arg(long, default_value = "auto", value_parser = ["auto", "always", "never"])]
+    pub bone: String,
     /// Gaussian smoothing before the gradients, in px (default 0.5 mm, 1 mm with --chain-edgels or
     /// --wall-band).
     #[arg(long, conflicts_with = "smoothing_mm")]
@@ -151,6 +157,11 @@ impl SegmentArgs {
             threshold: self.threshold,
             backward_pass: self.backward_pass || defaults.backward_pass,
             follow_band: self.follow_band,
+            bone: match self.bone.as_str() {
+                "always" => BoneMode::Always,
+                "never" => BoneMode::Never,
+                _ => BoneMode::Auto,
+            },
             ..defaults
         }
     }
