@@ -44,8 +44,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.sample_bin.is_finite() && args.sample_bin >= 0.0) {
         anyhow::bail!("--sample-bin must be a size in mm >= 0");
     }
-    let sequence = io::read_sequence(&seg.sequence)?;
-    let calibration = io::read_calibration(&seg.config)?;
+    let sequence = super::inputs::read_sequence(&seg.sequence)?;
+    let calibration = super::inputs::read_calibration_for(&seg.config, &sequence, &seg.sequence)?;
     let init = match (&seg.init, seg.auto_init) {
         (Some(path), false) => InitialBand::load(path, sequence.width, sequence.height)?,
         (None, true) => InitialBand::Auto,
@@ -74,7 +74,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let set = &prepared.samples;
     io::write_point_cloud(&args.out, &set.to_point_cloud())?;
-    print!(
+    out!(
         "wrote {} of {} samples ({} kept pixels, {} near echoes; {} world frame)",
         set.len(),
         prepared.all.len(),
@@ -83,11 +83,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         prepared.poses.world_frame
     );
     match prepared.levels {
-        Some(l) => println!(
+        Some(l) => outln!(
             "; levels: background {:.1}, boundary {:.1}, suggested iso {:.1}",
-            l.background, l.boundary, l.iso
+            l.background,
+            l.boundary,
+            l.iso
         ),
-        None => println!(),
+        None => outln!(),
     }
     Ok(())
 }

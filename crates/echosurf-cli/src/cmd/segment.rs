@@ -164,8 +164,9 @@ impl SegmentArgs {
         echosurf::segment::BandMasks,
     )> {
         let world = world_choice(&self.world)?;
-        let sequence = io::read_sequence(&self.sequence)?;
-        let calibration = io::read_calibration(&self.config)?;
+        let sequence = super::inputs::read_sequence(&self.sequence)?;
+        let calibration =
+            super::inputs::read_calibration_for(&self.config, &sequence, &self.sequence)?;
         let poses = io::resolve_poses(&sequence, Some(&calibration), world, &self.sequence)?;
         let init = match (&self.init, self.auto_init) {
             (Some(path), false) => InitialBand::load(path, sequence.width, sequence.height)?,
@@ -223,7 +224,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let p = masks.parameters;
-    println!(
+    outln!(
         "segmented {} of {} frames ({} skipped), kept {:.1}% of all pixels; M = {} edgels, sigma {:.1} px, \
          band +/-{:.1} px{}; {} warning(s)",
         poses.poses.len(),
