@@ -196,6 +196,9 @@ pub fn check_extract_budget(
 /// Per area sample of `compare`: the point (3 x f64), its distance (f64) and the parallel collection's
 /// chunk buffers.
 const COMPARE_BYTES_PER_SAMPLE: u64 = 48;
+/// Per triangle of either mesh in `compare`: the mesh, its bounding-volume hierarchy, the edge maps of
+/// the topology and the vertex distances (fitted to measured peaks: docs/decisions/0028-memory-budget-estimates.md).
+const COMPARE_BYTES_PER_TRIANGLE: u64 = 350;
 
 /// Area samples `compare` places on a surface of `area_mm2` (as `metrics::compare_meshes` counts them).
 pub fn compare_sample_count(area_mm2: f64, options: &crate::metrics::CompareOptions) -> u64 {
@@ -215,18 +218,23 @@ pub fn check_compare_budget(
 ) -> Result<()> {
     let mesh_samples = compare_sample_count(mesh.area_mm2(), options);
     let truth_samples = compare_sample_count(truth.area_mm2(), options);
-    let need = mesh_samples
+    let samples = mesh_samples
         .saturating_add(truth_samples)
         .saturating_mul(COMPARE_BYTES_PER_SAMPLE);
+    let meshes = ((mesh.triangles.len() + truth.triangles.len()) as u64)
+        .saturating_mul(COMPARE_BYTES_PER_TRIANGLE);
+    let need = samples.saturating_add(meshes);
     if need <= budget_bytes {
         return Ok(());
     }
     Err(Error::ResourceLimit(format!(
-        "compare would place {mesh_samples} + {truth_samples} area samples at {} per mm^2, about {} \
-         but the memory budget is {}: lower --samples-per-mm2 or --max-samples, or raise \
-         --memory-budget",
+        "compare would place {mesh_samples} + {truth_samples} area samples at {} per mm^2 and \
+         need about {} (samples {}, meshes {}) but the memory budget is {}: lower \
+         --samples-per-mm2 or --max-samples, or raise --memory-budget",
         options.samples_per_mm2,
         mb(need),
+        mb(samples),
+        mb(meshes),
         mb(budget_bytes)
     )))
 }

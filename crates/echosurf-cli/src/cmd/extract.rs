@@ -355,11 +355,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     check_outputs(&seg.input_files(), &planned_outputs(&args, &iso))?;
     let sequence = super::inputs::read_sequence(&seg.sequence)?;
-    let calibration = super::inputs::read_calibration_for(&seg.config, &sequence, &seg.sequence)?;
+    let calibration = io::read_calibration(&seg.config)?;
     let init = match &seg.init {
         Some(path) => InitialBand::load(path, sequence.width, sequence.height)?,
         None => InitialBand::Auto,
     };
+    // After the band: a bad band file is the more specific complaint.
+    super::inputs::check_clip(&calibration, &sequence, &seg.config, &seg.sequence)?;
     let method = parse_method(&args)?;
     let defaults = FitOptions::default();
     let options = ExtractOptions {

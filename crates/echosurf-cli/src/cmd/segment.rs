@@ -165,14 +165,15 @@ impl SegmentArgs {
     )> {
         let world = world_choice(&self.world)?;
         let sequence = super::inputs::read_sequence(&self.sequence)?;
-        let calibration =
-            super::inputs::read_calibration_for(&self.config, &sequence, &self.sequence)?;
+        let calibration = io::read_calibration(&self.config)?;
         let poses = io::resolve_poses(&sequence, Some(&calibration), world, &self.sequence)?;
         let init = match (&self.init, self.auto_init) {
             (Some(path), false) => InitialBand::load(path, sequence.width, sequence.height)?,
             (None, true) => InitialBand::Auto,
             _ => anyhow::bail!("give the initial band with --init FILE or ask for --auto-init"),
         };
+        // After the band: a bad band file is the more specific complaint.
+        super::inputs::check_clip(&calibration, &sequence, &self.config, &self.sequence)?;
         let progress = BarProgress::new();
         let masks = segment_sequence(
             &sequence,

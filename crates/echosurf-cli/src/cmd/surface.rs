@@ -62,8 +62,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for &k in &levels {
         if !(k > lo && k < hi) {
             anyhow::bail!(
-                "{}: --iso {k}: level {k} never crossed: the model's values at its centres span \
-                 {lo:.1}..{hi:.1}, so there is no surface",
+                "{}: --iso {k}: level {k} never crossed: it is outside the model's values at its \
+                 centres, which span {lo:.1}..{hi:.1}, so there is no surface",
                 args.model.display()
             );
         }
