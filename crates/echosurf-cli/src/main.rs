@@ -1,6 +1,8 @@
 //! `echosurf`: the command-line face of the echosurf library. Each subcommand lives in `cmd/` and only
 //! parses arguments, calls the library and prints; all the work is in the library.
 
+#[macro_use]
+mod stdout;
 mod cmd;
 mod progress;
 
@@ -63,12 +65,13 @@ fn error_message(error: &anyhow::Error) -> String {
     message
 }
 
-/// Exit code of a run stopped by Ctrl-C (128 + SIGINT), as shells report it.
+/// Exit code of a run stopped by Ctrl-C, SIGTERM or SIGHUP (128 + SIGINT, as shells report Ctrl-C).
 const INTERRUPTED_EXIT_CODE: i32 = 130;
 
 fn main() -> ExitCode {
-    // Ctrl-C: remove the unfinished hidden temporary outputs, so an interrupted run leaves neither a
-    // partial file nor litter. Finished outputs were renamed into place whole and stay.
+    // Ctrl-C, SIGTERM and SIGHUP (the `termination` feature of ctrlc): remove the unfinished hidden
+    // temporary outputs, so an interrupted run leaves neither a partial file nor litter. Finished
+    // outputs were renamed into place whole and stay.
     let _ = ctrlc::set_handler(|| {
         let removed = echosurf::io::atomic::remove_in_flight_temp_files();
         eprintln!(
@@ -95,8 +98,18 @@ fn main() -> ExitCode {
         Command::Bench(a) => cmd::bench::run(a),
         Command::Demo(a) => cmd::demo::run(a),
     };
+    let result = result.and_then(|()| Ok(stdout::flush_out()?));
     match result {
         Ok(()) => ExitCode::SUCCESS,
+        // The reader of our output left (`| head`): stop quietly, as a program killed by SIGPIPE would.
+        Err(e)
+            if e.chain().any(|c| {
+                c.downcast_ref::<stdout::StdoutError>()
+                    .is_some_and(stdout::StdoutError::is_broken_pipe)
+            }) =>
+        {
+            ExitCode::SUCCESS
+        }
         Err(e) => {
             eprintln!("error: {}", error_message(&e));
             ExitCode::FAILURE

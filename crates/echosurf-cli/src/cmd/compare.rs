@@ -74,6 +74,10 @@ pub struct Args {
     /// Distance (mm) shown red on the maps.
     #[arg(long, default_value_t = 1.0)]
     pub map_scale_mm: f64,
+    /// Refuse up front when the area samples would need more than this many MB (default: half the
+    /// machine's memory).
+    #[arg(long)]
+    pub memory_budget: Option<f64>,
 }
 
 /// Writes `mesh` coloured by each vertex's distance to `to` (see `Args::error_map`).
@@ -126,6 +130,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         seed: args.seed,
         ..CompareOptions::default()
     };
+    let budget = super::extract::memory_budget_bytes(args.memory_budget)?;
+    echosurf::budget::check_compare_budget(&mesh, &truth, &options, budget).with_context(|| {
+        format!(
+            "comparing {} with {}",
+            args.mesh.display(),
+            args.truth.display()
+        )
+    })?;
     let comparison = compare_meshes(&mesh, &truth, &options).with_context(|| {
         format!(
             "comparing {} with {}",
@@ -178,9 +190,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 topo.is_closed_manifold().into(),
             );
         }
-        println!("{}", serde_json::to_string(&value)?);
+        outln!("{}", serde_json::to_string(&value)?);
     } else {
-        print!("{}", table(&args, &comparison, swept.as_ref()));
+        out!("{}", table(&args, &comparison, swept.as_ref()));
     }
     for (path, from, to) in [
         (&args.error_map, &mesh, &truth),
@@ -191,7 +203,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if args.json {
                 eprintln!("{line}");
             } else {
-                println!("{line}");
+                outln!("{line}");
             }
         }
     }

@@ -5,6 +5,7 @@ pub mod demo;
 pub mod eval;
 pub mod extract;
 pub mod fit;
+pub mod inputs;
 pub mod inspect;
 pub mod outputs;
 pub mod reconstruct;

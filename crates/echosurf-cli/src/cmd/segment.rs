@@ -175,7 +175,7 @@ impl SegmentArgs {
         echosurf::segment::BandMasks,
     )> {
         let world = world_choice(&self.world)?;
-        let sequence = io::read_sequence(&self.sequence)?;
+        let sequence = super::inputs::read_sequence(&self.sequence)?;
         let calibration = io::read_calibration(&self.config)?;
         let poses = io::resolve_poses(&sequence, Some(&calibration), world, &self.sequence)?;
         let init = match (&self.init, self.auto_init) {
@@ -183,6 +183,8 @@ impl SegmentArgs {
             (None, true) => InitialBand::Auto,
             _ => anyhow::bail!("give the initial band with --init FILE or ask for --auto-init"),
         };
+        // After the band: a bad band file is the more specific complaint.
+        super::inputs::check_clip(&calibration, &sequence, &self.config, &self.sequence)?;
         let progress = BarProgress::new();
         let masks = segment_sequence(
             &sequence,
@@ -234,7 +236,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let p = masks.parameters;
-    println!(
+    outln!(
         "segmented {} of {} frames ({} skipped), kept {:.1}% of all pixels; M = {} edgels, sigma {:.1} px, \
          band +/-{:.1} px{}; {} warning(s)",
         poses.poses.len(),

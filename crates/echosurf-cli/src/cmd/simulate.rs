@@ -4,10 +4,13 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use echosurf::simulate::{
-    PhantomKind, SimulationOptions, simulate, write_preview, write_simulation,
+    PhantomKind, SimulationNames, SimulationOptions, simulate, write_preview, write_simulation_as,
 };
 
 use super::outputs::{Holds, check_outputs, output};
+
+/// The default `--name`, whose truth and description keep their historic names.
+const DEFAULT_NAME: &str = "sim";
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -17,8 +20,9 @@ pub struct Args {
     /// Output folder (created if missing).
     #[arg(long)]
     out: PathBuf,
-    /// Base name of the sequence (NAME.mha) and calibration (NAME_config.xml).
-    #[arg(long, default_value = "sim")]
+    /// Base name of the files: NAME.mha, NAME_config.xml, NAME_truth.ply, NAME_phantom.json (with the
+    /// default `sim`: sim.mha, sim_config.xml, truth.ply, phantom.json).
+    #[arg(long, default_value = DEFAULT_NAME)]
     name: String,
     /// Random seed: same arguments and seed give identical files.
     #[arg(long, default_value_t = 1)]
@@ -153,34 +157,84 @@ fn options_from(args: &Args) -> SimulationOptions {
     o
 }
 
+/// The files of `names` in `--out`, each as an output to check before the work.
+fn planned_outputs(args: &Args, names: &SimulationNames) -> Vec<super::outputs::Output> {
+    let dir = &args.out;
+    let mut outputs = vec![
+        output("--out (sequence)", &names.sequence(dir), Holds::MetaImage),
+        output(
+            "--out (calibration)",
+            &names.calibration(dir),
+            Holds::AnyName,
+        ),
+        output("--out (truth)", &names.truth(dir), Holds::Mesh),
+        output(
+            "--out (description)",
+            &names.description(dir),
+            Holds::AnyName,
+        ),
+    ];
+    outputs.extend(
+        args.preview
+            .as_deref()
+            .map(|p| output("--preview", p, Holds::Png)),
+    );
+    outputs
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
-    if let Some(path) = &args.preview {
-        check_outputs(&[], &[output("--preview", path, Holds::Png)])?;
+    if args.name.is_empty() || args.name.contains(['/', '\\']) || args.name.starts_with('.') {
+        anyhow::bail!(
+            "--name {:?}: give a plain file name (no folder, not hidden)",
+            args.name
+        );
     }
+    let names = if args.name == DEFAULT_NAME {
+        SimulationNames::plain(&args.name)
+    } else {
+        SimulationNames::prefixed(&args.name)
+    };
     let options = options_from(&args);
+    let inputs: Vec<PathBuf> = match &options.phantom {
+        PhantomKind::Mesh(path) => vec![path.clone()],
+        _ => Vec::new(),
+    };
+    if args.out.is_dir() {
+        check_outputs(&inputs, &planned_outputs(&args, &names))?;
+    } else if args.out.exists() {
+        anyhow::bail!(
+            "--out {}: that is not a folder (simulate writes several files into one)",
+            args.out.display()
+        );
+    } else if let Some(path) = &args.preview {
+        // The folder is created later; the preview may go elsewhere and is checked now.
+        check_outputs(&inputs, &[output("--preview", path, Holds::Png)])?;
+    }
     let work = || -> anyhow::Result<()> {
         let progress = crate::progress::BarProgress::new();
         let sim = simulate(&options, &progress)?;
-        let files = write_simulation(&args.out, &args.name, &sim, &options)?;
-        println!(
+        let files = write_simulation_as(&args.out, &names, &sim, &options)?;
+        outln!(
             "simulated {} frames in {} sweeps of the {} phantom",
             sim.sequence.frames.len(),
             sim.sweeps.len(),
             options.phantom.name()
         );
-        println!(
+        outln!(
             "levels: background {:.1}, boundary {:.1}, suggested iso-level {:.1}",
-            sim.background_level, sim.boundary_level, sim.suggested_iso
+            sim.background_level,
+            sim.boundary_level,
+            sim.suggested_iso
         );
-        println!("sequence:    {}", files.sequence.display());
-        println!("calibration: {}", files.calibration.display());
+        outln!("sequence:    {}", files.sequence.display());
+        outln!("calibration: {}", files.calibration.display());
         for t in &files.truth {
-            println!("truth:       {}", t.display());
+            outln!("truth:       {}", t.display());
         }
-        println!("description: {}", files.description.display());
+        outln!("description: {}", files.description.display());
         if let Some(path) = &args.preview {
             write_preview(path, &sim, 12)?;
-            println!("preview:     {}", path.display());
+            outln!("preview:     {}", path.display());
         }
         Ok(())
     };

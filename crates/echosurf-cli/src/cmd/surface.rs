@@ -47,6 +47,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     // The model's own values at its centres say where each level passes.
     let values = model.values(&centres);
+    if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
+        anyhow::bail!(
+            "{}: the model's value at its centre {bad} is {}: its coefficients are out of range",
+            args.model.display(),
+            values[bad]
+        );
+    }
     let (lo, hi) = values
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
@@ -55,7 +62,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for &k in &levels {
         if !(k > lo && k < hi) {
             anyhow::bail!(
-                "--iso {k} is outside the model's values at its centres ({lo:.1} to {hi:.1}): no surface"
+                "{}: --iso {k}: level {k} never crossed: it is outside the model's values at its \
+                 centres, which span {lo:.1}..{hi:.1}, so there is no surface",
+                args.model.display()
             );
         }
     }
@@ -78,7 +87,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let path = mesh_path(&args.out, k, several);
         io::write_mesh(&path, mesh)?;
         let t = mesh.topology();
-        println!(
+        outln!(
             "iso {k}: {} triangles, {} component(s), {} boundary edges -> {}",
             mesh.triangles.len(),
             t.components,
@@ -86,7 +95,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             path.display()
         );
     }
-    println!(
+    outln!(
         "{} field evaluations ({:.1} per triangle)",
         stats.value_evaluations + stats.gradient_evaluations,
         stats.evaluations_per_triangle()

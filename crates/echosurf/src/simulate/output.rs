@@ -69,6 +69,66 @@ pub fn merged_truth(truth: &[(String, Mesh)]) -> Mesh {
     Mesh::merged(truth.iter().map(|(_, m)| m))
 }
 
+/// The file names a simulation writes into its folder.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SimulationNames {
+    /// Base name of the sequence (`NAME.mha`) and calibration (`NAME_config.xml`).
+    pub name: String,
+    /// Prefix of the truth meshes and the description: empty (`truth.ply`, `phantom.json`) or
+    /// `NAME_` (`NAME_truth.ply`, `NAME_phantom.json`), so runs of other names share a folder.
+    pub truth_prefix: String,
+}
+
+impl SimulationNames {
+    /// `NAME.mha`, `NAME_config.xml`, `truth.ply`, `phantom.json`.
+    pub fn plain(name: &str) -> SimulationNames {
+        SimulationNames {
+            name: name.to_string(),
+            truth_prefix: String::new(),
+        }
+    }
+
+    /// `NAME.mha`, `NAME_config.xml`, `NAME_truth.ply`, `NAME_phantom.json`.
+    pub fn prefixed(name: &str) -> SimulationNames {
+        SimulationNames {
+            name: name.to_string(),
+            truth_prefix: format!("{name}_"),
+        }
+    }
+
+    pub fn sequence(&self, dir: &Path) -> PathBuf {
+        dir.join(format!("{}.mha", self.name))
+    }
+
+    pub fn calibration(&self, dir: &Path) -> PathBuf {
+        dir.join(format!("{}_config.xml", self.name))
+    }
+
+    /// All true surfaces in one mesh.
+    pub fn truth(&self, dir: &Path) -> PathBuf {
+        dir.join(format!("{}truth.ply", self.truth_prefix))
+    }
+
+    /// One true surface, written when there are several.
+    pub fn truth_surface(&self, dir: &Path, surface: &str) -> PathBuf {
+        dir.join(format!("{}truth_{surface}.ply", self.truth_prefix))
+    }
+
+    pub fn description(&self, dir: &Path) -> PathBuf {
+        dir.join(format!("{}phantom.json", self.truth_prefix))
+    }
+
+    /// Every file written for these surfaces, in writing order.
+    pub fn files(&self, dir: &Path, surfaces: &[String]) -> Vec<PathBuf> {
+        let mut files = vec![self.sequence(dir), self.calibration(dir), self.truth(dir)];
+        if surfaces.len() > 1 {
+            files.extend(surfaces.iter().map(|s| self.truth_surface(dir, s)));
+        }
+        files.push(self.description(dir));
+        files
+    }
+}
+
 /// Writes `NAME.mha`, `NAME_config.xml`, `truth.ply` (+ `truth_NAME.ply` per surface when there are
 /// several) and `phantom.json` into `dir` (created if missing).
 pub fn write_simulation(
@@ -77,26 +137,37 @@ pub fn write_simulation(
     sim: &Simulation,
     options: &SimulationOptions,
 ) -> Result<SimulationFiles> {
+    write_simulation_as(dir, &SimulationNames::plain(name), sim, options)
+}
+
+/// [`write_simulation`] with the file names of `names`.
+pub fn write_simulation_as(
+    dir: &Path,
+    names: &SimulationNames,
+    sim: &Simulation,
+    options: &SimulationOptions,
+) -> Result<SimulationFiles> {
+    let name = names.name.as_str();
     if name.is_empty() || name.contains(['/', '\\']) {
         return Err(Error::InvalidInput(format!(
             "simulation name {name:?} must be a plain file name"
         )));
     }
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    let sequence = dir.join(format!("{name}.mha"));
+    let sequence = names.sequence(dir);
     crate::io::write_sequence(&sequence, &sim.sequence, options.compress)?;
-    let calibration = dir.join(format!("{name}_config.xml"));
+    let calibration = names.calibration(dir);
     crate::io::write_calibration(&calibration, &sim.calibration_written)?;
-    let mut truth = vec![dir.join("truth.ply")];
+    let mut truth = vec![names.truth(dir)];
     crate::io::write_mesh(&truth[0], &merged_truth(&sim.truth))?;
     if sim.truth.len() > 1 {
         for (surface, mesh) in &sim.truth {
-            let path = dir.join(format!("truth_{surface}.ply"));
+            let path = names.truth_surface(dir, surface);
             crate::io::write_mesh(&path, mesh)?;
             truth.push(path);
         }
     }
-    let description = dir.join("phantom.json");
+    let description = names.description(dir);
     let json = description_json(name, sim, options, &truth);
     let text = serde_json::to_string_pretty(&json)
         .map_err(|e| Error::InvalidInput(format!("phantom.json: {e}")))?;
