@@ -24,9 +24,12 @@ pub struct Args {
     /// background and boundary echo levels of the kept pixels.
     #[arg(long, default_value = "auto")]
     pub iso: String,
-    /// Output mesh (.ply, .stl or .obj). With several levels, `_iso<LEVEL>` is added before the extension.
+    /// Output mesh (.ply, .stl, .obj or .vtk). With several levels, `_iso<LEVEL>` is added before the
+    /// extension.
     #[arg(long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
     /// Route: `rbf` (segment, fit one RBF to the kept pixels, surface it) or `voxel` (PLUS-like volume of
     /// all clipped pixels with the config's VolumeReconstruction settings, Gaussian, marching cubes).
     #[arg(long, default_value = "rbf")]
@@ -436,7 +439,11 @@ fn planned_outputs(args: &Args, iso: &IsoLevels) -> Vec<Output> {
 pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
     let several = output.surfaces.len() > 1;
     for s in &output.surfaces {
-        io::write_mesh(&mesh_path(&args.out, s.level, several), &s.mesh)?;
+        io::write_mesh_in(
+            &mesh_path(&args.out, s.level, several),
+            &s.mesh,
+            args.space.space,
+        )?;
     }
     if let Some(path) = &args.model {
         match &output.model {
@@ -448,7 +455,12 @@ pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> 
         io::write_point_cloud(path, &output.samples.to_point_cloud())?;
     }
     if let Some(path) = &args.report {
-        let json = serde_json::to_string_pretty(&output.report)?;
+        let report = super::space::with_coordinates(
+            &output.report,
+            &output.report.parameters.world_frame,
+            args.space.space,
+        )?;
+        let json = serde_json::to_string_pretty(&report)?;
         io::atomic::write_bytes_atomic(path, json.as_bytes())?;
     }
     if let Some(path) = &args.preview {

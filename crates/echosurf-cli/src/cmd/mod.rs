@@ -12,4 +12,5 @@ pub mod render;
 pub mod sample;
 pub mod segment;
 pub mod simulate;
+pub mod space;
 pub mod surface;

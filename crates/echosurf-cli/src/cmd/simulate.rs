@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use echosurf::simulate::{
-    PhantomKind, SimulationOptions, simulate, write_preview, write_simulation,
+    PhantomKind, SimulationOptions, simulate, write_preview, write_simulation_in,
 };
 
 use super::outputs::{Holds, check_outputs, output};
@@ -41,6 +41,9 @@ pub struct Args {
     /// Worker threads (default: all cores). The output does not depend on it.
     #[arg(long)]
     threads: Option<usize>,
+    /// Coordinates of the truth meshes.
+    #[command(flatten)]
+    space: super::space::SpaceArg,
 }
 
 /// Optional settings; each left out keeps the library default.
@@ -161,7 +164,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let work = || -> anyhow::Result<()> {
         let progress = crate::progress::BarProgress::new();
         let sim = simulate(&options, &progress)?;
-        let files = write_simulation(&args.out, &args.name, &sim, &options)?;
+        let files = write_simulation_in(&args.out, &args.name, &sim, &options, args.space.space)?;
         println!(
             "simulated {} frames in {} sweeps of the {} phantom",
             sim.sequence.frames.len(),

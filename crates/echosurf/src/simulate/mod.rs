@@ -25,7 +25,9 @@ use rayon::prelude::*;
 
 pub use bmode::{Acoustics, Frame, FrameFormer, ImageGrid, LevelSums, Material};
 pub use errors::TrackingErrors;
-pub use output::{SimulationFiles, merged_truth, write_preview, write_simulation};
+pub use output::{
+    SimulationFiles, merged_truth, write_preview, write_simulation, write_simulation_in,
+};
 pub use phantom::{Phantom, PhantomKind, build_phantom, phantom_sdf};
 pub use sweep::{HandMotion, SweepSpec};
 
