@@ -44,6 +44,8 @@ enum Command {
     Bench(cmd::bench::Args),
     /// Simulate the duck, extract, compare with truth, render, and summarise.
     Demo(cmd::demo::Args),
+    /// Run as a 3D Slicer command-line module (`--xml` prints its description); see echosurf-slicer.
+    SlicerModule(Box<cmd::slicer::Args>),
 }
 
 /// The error and its causes on one line, each cause once. The library's file errors already end with
@@ -94,6 +96,7 @@ fn main() -> ExitCode {
         Command::Reconstruct(a) => cmd::reconstruct::run(a),
         Command::Bench(a) => cmd::bench::run(a),
         Command::Demo(a) => cmd::demo::run(a),
+        Command::SlicerModule(a) => cmd::slicer::run(*a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

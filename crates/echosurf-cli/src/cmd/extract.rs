@@ -323,6 +323,15 @@ pub(crate) fn posed_sequence(
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    run_with(args, &BarProgress::new()).map(|_| ())
+}
+
+/// `extract` with progress reported to `progress`: checks, runs the pipeline, writes every output and
+/// prints the summary; returns what the pipeline produced (for the Slicer module's return values).
+pub fn run_with(
+    args: Args,
+    progress: &dyn echosurf::progress::Progress,
+) -> anyhow::Result<ExtractOutput> {
     let seg = &args.segment;
     let iso = parse_iso(&args.iso)?;
     if !(args.resolution.is_finite() && args.resolution > 0.0) {
@@ -412,12 +421,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
     };
-    let progress = BarProgress::new();
-    let output = pipeline::extract(&sequence, Some(&calibration), &options, &progress)
+    let output = pipeline::extract(&sequence, Some(&calibration), &options, progress)
         .with_context(|| format!("extracting a surface from {}", seg.sequence.display()))?;
     write_outputs(&args, &output)?;
     print_summary(&args, &output);
-    Ok(())
+    Ok(output)
 }
 
 /// The files `write_outputs` will write, each with the option that names it: one mesh per level

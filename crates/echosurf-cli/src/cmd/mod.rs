@@ -12,5 +12,6 @@ pub mod render;
 pub mod sample;
 pub mod segment;
 pub mod simulate;
+pub mod slicer;
 pub mod space;
 pub mod surface;
