@@ -11,7 +11,7 @@
 //! Every mesh written states its coordinate system the way 3D Slicer writes and reads it: `SPACE=RAS`
 //! or `SPACE=LPS` in the PLY comment, the STL 80-byte header, the OBJ comment and the VTK header line.
 //! echosurf works in the tracking frame's own coordinates, which Slicer shows as RAS (see
-//! `docs/decisions/0031-mesh-coordinate-space.md`); a file tagged LPS has x and y negated on the way
+//! `docs/decisions/0029-mesh-coordinate-space.md`); a file tagged LPS has x and y negated on the way
 //! in and out. A file without a tag is taken as the working (RAS) coordinates: that is what every
 //! echosurf file before the tag, and the simulator's ground truths, hold.
 
