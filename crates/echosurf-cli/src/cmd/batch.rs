@@ -217,7 +217,7 @@ fn run_job(dir: &Path, job: &Job) -> anyhow::Result<Outcome> {
     let args = ExtractCommand::try_parse_from(words)
         .map_err(|e| anyhow::anyhow!("options {:?}: {}", job.options, e.to_string().trim_end()))?
         .args;
-    if matches!(&args.report, Some(_)) || args.iso.contains(',') {
+    if args.report.is_some() || args.iso.contains(',') {
         anyhow::bail!(
             "a batch row writes its own report and one mesh: no --report, one --iso level"
         );
