@@ -46,12 +46,16 @@ enum Command {
     Bench(cmd::bench::Args),
     /// Simulate the duck, extract, compare with truth, render, and summarise.
     Demo(cmd::demo::Args),
+    /// Run as a 3D Slicer command-line module (`--xml` prints its description); see echosurf-slicer.
+    SlicerModule(Box<cmd::slicer::Args>),
+    /// Extract every sweep a manifest lists: resumable, shardable (--shard I/N), one summary table.
+    Batch(cmd::batch::Args),
 }
 
 /// The error and its causes on one line, each cause once. The library's file errors already end with
 /// their cause (so a library user's `to_string()` says why), and anyhow's `{:#}` would repeat it:
 /// "a.mha: No such file or directory (os error 2): No such file or directory (os error 2)".
-fn error_message(error: &anyhow::Error) -> String {
+pub(crate) fn error_message(error: &anyhow::Error) -> String {
     let mut message = String::new();
     for cause in error.chain() {
         let text = cause.to_string();
@@ -97,6 +101,8 @@ fn main() -> ExitCode {
         Command::Reconstruct(a) => cmd::reconstruct::run(a),
         Command::Bench(a) => cmd::bench::run(a),
         Command::Demo(a) => cmd::demo::run(a),
+        Command::SlicerModule(a) => cmd::slicer::run(*a),
+        Command::Batch(a) => cmd::batch::run(a),
     };
     let result = result.and_then(|()| Ok(stdout::flush_out()?));
     match result {

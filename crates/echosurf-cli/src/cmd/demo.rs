@@ -9,7 +9,7 @@ use anyhow::Context;
 use echosurf::io;
 use echosurf::metrics::{CompareOptions, compare_meshes};
 use echosurf::pipeline::{self, ExtractOptions};
-use echosurf::simulate::{SimulationOptions, simulate, write_simulation};
+use echosurf::simulate::{SimulationNames, SimulationOptions, simulate, write_simulation_as};
 
 use super::extract::write_preview;
 use crate::progress::BarProgress;
@@ -29,6 +29,8 @@ pub struct Args {
     /// on each echo's ridge).
     #[arg(long, default_value = "auto")]
     pub sheet: String,
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -42,7 +44,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     outln!("simulating a freehand sweep of the duck phantom ...");
     let sim = simulate(&sim_options, &BarProgress::new())?;
-    let files = write_simulation(&args.out, "duck", &sim, &sim_options)?;
+    let files = write_simulation_as(
+        &args.out,
+        &SimulationNames::plain("duck"),
+        &sim,
+        &sim_options,
+        args.space.space,
+    )?;
     let sim_seconds = start.elapsed().as_secs_f64();
 
     outln!("extracting the surface ...");
@@ -62,11 +70,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .surfaces
         .first()
         .context("the pipeline returned no surface")?;
-    io::write_mesh(&mesh_path, &surface.mesh)?;
+    io::write_mesh_in(&mesh_path, &surface.mesh, args.space.space)?;
     let report_path = args.out.join("duck_report.json");
+    let report = super::space::with_coordinates(
+        &output.report,
+        &output.report.parameters.world_frame,
+        args.space.space,
+    )?;
     io::atomic::write_bytes_atomic(
         &report_path,
-        serde_json::to_string_pretty(&output.report)?.as_bytes(),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;
 
     // All true walls in one mesh (the duck's outer and inner wall): each extracted sheet is scored

@@ -24,9 +24,12 @@ pub struct Args {
     /// background and boundary echo levels of the kept pixels.
     #[arg(long, default_value = "auto")]
     pub iso: String,
-    /// Output mesh (.ply, .stl or .obj). With several levels, `_iso<LEVEL>` is added before the extension.
+    /// Output mesh (.ply, .stl, .obj or .vtk). With several levels, `_iso<LEVEL>` is added before the
+    /// extension.
     #[arg(long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
     /// Route: `rbf` (segment, fit one RBF to the kept pixels, surface it) or `voxel` (PLUS-like volume of
     /// all clipped pixels with the config's VolumeReconstruction settings, Gaussian, marching cubes).
     #[arg(long, default_value = "rbf")]
@@ -327,6 +330,15 @@ pub(crate) fn posed_sequence(
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    run_with(args, &BarProgress::new()).map(|_| ())
+}
+
+/// `extract` with progress reported to `progress`: checks, runs the pipeline, writes every output and
+/// prints the summary; returns what the pipeline produced (for the Slicer module's return values).
+pub fn run_with(
+    args: Args,
+    progress: &dyn echosurf::progress::Progress,
+) -> anyhow::Result<ExtractOutput> {
     let seg = &args.segment;
     let iso = parse_iso(&args.iso)?;
     if !(args.resolution.is_finite() && args.resolution > 0.0) {
@@ -418,12 +430,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
     };
-    let progress = BarProgress::new();
-    let output = pipeline::extract(&sequence, Some(&calibration), &options, &progress)
+    let output = pipeline::extract(&sequence, Some(&calibration), &options, progress)
         .with_context(|| format!("extracting a surface from {}", seg.sequence.display()))?;
     write_outputs(&args, &output)?;
     print_summary(&args, &output)?;
-    Ok(())
+    Ok(output)
 }
 
 /// The files `write_outputs` will write, each with the option that names it: one mesh per level
@@ -445,7 +456,11 @@ fn planned_outputs(args: &Args, iso: &IsoLevels) -> Vec<Output> {
 pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
     let several = output.surfaces.len() > 1;
     for s in &output.surfaces {
-        io::write_mesh(&mesh_path(&args.out, s.level, several), &s.mesh)?;
+        io::write_mesh_in(
+            &mesh_path(&args.out, s.level, several),
+            &s.mesh,
+            args.space.space,
+        )?;
     }
     if let Some(path) = &args.model {
         match &output.model {
@@ -457,7 +472,12 @@ pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> 
         io::write_point_cloud(path, &output.samples.to_point_cloud())?;
     }
     if let Some(path) = &args.report {
-        let json = serde_json::to_string_pretty(&output.report)?;
+        let report = super::space::with_coordinates(
+            &output.report,
+            &output.report.parameters.world_frame,
+            args.space.space,
+        )?;
+        let json = serde_json::to_string_pretty(&report)?;
         io::atomic::write_bytes_atomic(path, json.as_bytes())?;
     }
     if let Some(path) = &args.preview {

@@ -1,4 +1,5 @@
 //! One module per subcommand.
+pub mod batch;
 pub mod bench;
 pub mod compare;
 pub mod demo;
@@ -13,4 +14,6 @@ pub mod render;
 pub mod sample;
 pub mod segment;
 pub mod simulate;
+pub mod slicer;
+pub mod space;
 pub mod surface;

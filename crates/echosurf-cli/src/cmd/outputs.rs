@@ -12,7 +12,7 @@ use echosurf::io::mesh_io::MESH_EXTENSIONS;
 /// What an output file holds, which fixes the extensions its name may end in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Holds {
-    /// A triangle mesh: PLY, STL or OBJ, chosen by the extension.
+    /// A triangle mesh: PLY, STL, OBJ or VTK, chosen by the extension.
     Mesh,
     /// A PNG picture.
     Png,
@@ -39,7 +39,7 @@ impl Holds {
 
     fn description(self) -> &'static str {
         match self {
-            Holds::Mesh => "a mesh is written as PLY, STL or OBJ by the extension",
+            Holds::Mesh => "a mesh is written as PLY, STL, OBJ or VTK by the extension",
             Holds::Png => "the picture is written as PNG",
             Holds::MetaImage => "this is written as a MetaImage file with its data inside",
             Holds::PointCloud => "the point cloud is written as PLY",
@@ -284,7 +284,7 @@ mod tests {
             assert!(refused(name, Holds::Mesh).is_ok(), "{name}");
         }
         let err = refused("m.xyz", Holds::Mesh).unwrap_err();
-        assert!(err.ends_with("must end in .ply, .stl, .obj"), "{err}");
+        assert!(err.ends_with("must end in .ply, .stl, .obj, .vtk"), "{err}");
         assert!(refused("mesh", Holds::Mesh).is_err());
         assert!(refused("view.jpg", Holds::Png).unwrap_err().contains("PNG"));
         assert!(refused("view.PNG", Holds::Png).is_ok());

@@ -45,6 +45,9 @@ pub struct Args {
     /// Worker threads (default: all cores). The output does not depend on it.
     #[arg(long)]
     threads: Option<usize>,
+    /// Coordinates of the truth meshes.
+    #[command(flatten)]
+    space: super::space::SpaceArg,
 }
 
 /// Optional settings; each left out keeps the library default.
@@ -213,7 +216,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let work = || -> anyhow::Result<()> {
         let progress = crate::progress::BarProgress::new();
         let sim = simulate(&options, &progress)?;
-        let files = write_simulation_as(&args.out, &names, &sim, &options)?;
+        let files = write_simulation_as(&args.out, &names, &sim, &options, args.space.space)?;
         outln!(
             "simulated {} frames in {} sweeps of the {} phantom",
             sim.sequence.frames.len(),

@@ -19,9 +19,12 @@ pub struct Args {
     /// Iso-level(s), comma separated; one mesh each.
     #[arg(long)]
     pub iso: String,
-    /// Output mesh (.ply, .stl or .obj). With several levels, `_iso<LEVEL>` is added before the extension.
+    /// Output mesh (.ply, .stl, .obj or .vtk). With several levels, `_iso<LEVEL>` is added before the
+    /// extension.
     #[arg(long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
     /// Lattice spacing in mm.
     #[arg(long, default_value_t = 0.5)]
     pub resolution: f64,
@@ -85,7 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let several = levels.len() > 1;
     for (&k, mesh) in levels.iter().zip(&meshes) {
         let path = mesh_path(&args.out, k, several);
-        io::write_mesh(&path, mesh)?;
+        io::write_mesh_in(&path, mesh, args.space.space)?;
         let t = mesh.topology();
         outln!(
             "iso {k}: {} triangles, {} component(s), {} boundary edges -> {}",

@@ -130,22 +130,29 @@ impl SimulationNames {
 }
 
 /// Writes `NAME.mha`, `NAME_config.xml`, `truth.ply` (+ `truth_NAME.ply` per surface when there are
-/// several) and `phantom.json` into `dir` (created if missing).
+/// several) and `phantom.json` into `dir` (created if missing); the truth meshes tagged RAS.
 pub fn write_simulation(
     dir: &Path,
     name: &str,
     sim: &Simulation,
     options: &SimulationOptions,
 ) -> Result<SimulationFiles> {
-    write_simulation_as(dir, &SimulationNames::plain(name), sim, options)
+    write_simulation_as(
+        dir,
+        &SimulationNames::plain(name),
+        sim,
+        options,
+        crate::io::Space::Ras,
+    )
 }
 
-/// [`write_simulation`] with the file names of `names`.
+/// [`write_simulation`] with the file names of `names` and the truth meshes written in `truth_space`.
 pub fn write_simulation_as(
     dir: &Path,
     names: &SimulationNames,
     sim: &Simulation,
     options: &SimulationOptions,
+    truth_space: crate::io::Space,
 ) -> Result<SimulationFiles> {
     let name = names.name.as_str();
     if name.is_empty() || name.contains(['/', '\\']) {
@@ -159,16 +166,16 @@ pub fn write_simulation_as(
     let calibration = names.calibration(dir);
     crate::io::write_calibration(&calibration, &sim.calibration_written)?;
     let mut truth = vec![names.truth(dir)];
-    crate::io::write_mesh(&truth[0], &merged_truth(&sim.truth))?;
+    crate::io::write_mesh_in(&truth[0], &merged_truth(&sim.truth), truth_space)?;
     if sim.truth.len() > 1 {
         for (surface, mesh) in &sim.truth {
             let path = names.truth_surface(dir, surface);
-            crate::io::write_mesh(&path, mesh)?;
+            crate::io::write_mesh_in(&path, mesh, truth_space)?;
             truth.push(path);
         }
     }
     let description = names.description(dir);
-    let json = description_json(name, sim, options, &truth);
+    let json = description_json(name, sim, options, &truth, truth_space);
     let text = serde_json::to_string_pretty(&json)
         .map_err(|e| Error::InvalidInput(format!("phantom.json: {e}")))?;
     crate::io::atomic::write_bytes_atomic(&description, (text + "\n").as_bytes())?;
@@ -185,6 +192,7 @@ fn description_json(
     sim: &Simulation,
     options: &SimulationOptions,
     truth_files: &[PathBuf],
+    truth_space: crate::io::Space,
 ) -> serde_json::Value {
     let file_name = |p: &PathBuf| {
         p.file_name()
@@ -203,6 +211,7 @@ fn description_json(
         "background_level": sim.background_level,
         "boundary_level": sim.boundary_level,
         "world_frame": "Tracker (= phantom frame at t = 0), mm",
+        "coordinates": {"frame": "Tracker", "space": truth_space},
         "phantom_bounds_mm": [sim.phantom_bounds.0.to_array(), sim.phantom_bounds.1.to_array()],
         "image_to_probe_true": mat4_to_row_major(&sim.calibration_true.image_to_probe),
         "image_to_probe_written": mat4_to_row_major(&sim.calibration_written.image_to_probe),
