@@ -165,6 +165,8 @@ done
 
 echo
 echo "Independent bench: $("$echosurf" --version), extra rbf args: ${extra[*]:-(none)}"
+# Times are wall clock: read them against the machine's load.
+echo "load average at the end: $(cut -d' ' -f1-3 /proc/loadavg 2>/dev/null || echo unknown), $(nproc) cores"
 echo
 echo "| phantom | route | mean mm (<= 0.30) | p95 mm (<= 0.60) | swept facing 60 deg within 1 mm (>= 0.98) | pieces (duck <= 2, hand 1) | largest piece share | extract s (duck <= 4) | all |"
 echo "|---|---|---|---|---|---|---|---|---|"

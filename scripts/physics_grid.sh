@@ -111,6 +111,8 @@ done
 
 echo
 echo "Physics grid: $("$echosurf" --version), seed 1, $frames frames/sweep, extra extract args: ${extra[*]:-(none)}"
+# Times are wall clock: read them against the machine's load.
+echo "load average at the end: $(cut -d' ' -f1-3 /proc/loadavg 2>/dev/null || echo unknown), $(nproc) cores"
 echo
 echo "| setting | simulate knobs | mean mm (<= 0.30) | p95 mm (<= 0.60) | swept facing 60 deg within 1 mm (>= 0.98) | pieces (duck <= 2, hand/bone 1) | largest piece share | extract s | all |"
 echo "|---|---|---|---|---|---|---|---|---|"
