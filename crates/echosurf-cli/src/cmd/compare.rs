@@ -194,6 +194,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             object.insert("sequence".into(), serde_json::json!(args.sequence));
             object.insert("swept_facing".into(), serde_json::to_value(score)?);
         }
+        object.insert(
+            "mesh_largest_piece_area_share".into(),
+            echosurf::bench::largest_piece_area_share(&mesh).into(),
+        );
         for (key, topo) in [
             ("mesh", &comparison.mesh_topology),
             ("truth", &comparison.truth_topology),

@@ -4,7 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use echosurf::simulate::{
-    PhantomKind, SimulationNames, SimulationOptions, simulate, write_preview, write_simulation_as,
+    PhantomKind, PhysicsPreset, SimulationNames, SimulationOptions, Surround, simulate,
+    write_preview, write_simulation_as,
 };
 
 use super::outputs::{Holds, check_outputs, output};
@@ -14,7 +15,7 @@ const DEFAULT_NAME: &str = "sim";
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// sphere | ellipsoid | torus | duck | hand | PATH to a closed STL/PLY/OBJ mesh (mm).
+    /// sphere | ellipsoid | torus | duck | hand | bone | PATH to a closed STL/PLY/OBJ mesh (mm).
     #[arg(long, default_value = "duck")]
     phantom: String,
     /// Output folder (created if missing).
@@ -50,9 +51,43 @@ pub struct Args {
     space: super::space::SpaceArg,
 }
 
+/// Named physics (`--physics`).
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum PhysicsArg {
+    /// The water bath of the paper's phantoms.
+    Default,
+    /// The object in soft tissue: speckle all around it.
+    Tissue,
+    /// A bone surface in soft tissue: strong echo, full shadow below.
+    Bone,
+}
+
+/// Medium around the object (`--surround`).
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum SurroundArg {
+    Water,
+    Tissue,
+}
+
 /// Optional settings; each left out keeps the library default.
 #[derive(Debug, clap::Args)]
 struct Knobs {
+    /// Starting physics, which the knobs below then change (default: `bone` for `--phantom bone`,
+    /// `default` otherwise).
+    #[arg(long, value_enum)]
+    physics: Option<PhysicsArg>,
+    /// n in cos^n: how fast a specular echo falls with the angle between wall normal and beam.
+    #[arg(long)]
+    specular_exponent: Option<f64>,
+    /// Share (0, 1] of the 0.1 mm cells holding a diffuse scatterer (1 = fully developed speckle).
+    #[arg(long)]
+    scatterer_density: Option<f64>,
+    /// Shadow strength: share [0, 1] of the amplitude lost at each interface crossed.
+    #[arg(long)]
+    interface_loss: Option<f64>,
+    /// Medium around the object (and in the duck's cavity).
+    #[arg(long, value_enum)]
+    surround: Option<SurroundArg>,
     /// Frames per sweep.
     #[arg(long)]
     frames_per_sweep: Option<usize>,
@@ -98,11 +133,35 @@ struct Knobs {
 }
 
 fn options_from(args: &Args) -> SimulationOptions {
+    let phantom = PhantomKind::parse(&args.phantom);
+    let physics = match args.knobs.physics {
+        Some(PhysicsArg::Default) => PhysicsPreset::Default,
+        Some(PhysicsArg::Tissue) => PhysicsPreset::Tissue,
+        Some(PhysicsArg::Bone) => PhysicsPreset::Bone,
+        None if phantom == PhantomKind::Bone => PhysicsPreset::Bone,
+        None => PhysicsPreset::Default,
+    };
     let mut o = SimulationOptions {
-        phantom: PhantomKind::parse(&args.phantom),
+        phantom,
         seed: args.seed,
+        acoustics: physics.acoustics(),
         ..Default::default()
     };
+    if let Some(surround) = args.knobs.surround {
+        o.acoustics = o.acoustics.with_surround(match surround {
+            SurroundArg::Water => Surround::Water,
+            SurroundArg::Tissue => Surround::Tissue,
+        });
+    }
+    if let Some(v) = args.knobs.specular_exponent {
+        o.acoustics.specular_exponent = v;
+    }
+    if let Some(v) = args.knobs.scatterer_density {
+        o.acoustics.scatterer_density = v;
+    }
+    if let Some(v) = args.knobs.interface_loss {
+        o.acoustics.interface_loss = v;
+    }
     if let Some(v) = args.knobs.frames_per_sweep {
         o.frames_per_sweep = v;
     }
