@@ -253,9 +253,10 @@ pub fn tissue_frames(levels: &[Option<[f64; 2]>]) -> usize {
         .count()
 }
 
-/// Near field at least this fraction of the sweep's echo level: tissue under the probe. Water is dark
-/// (the independent and simulated water baths: under a tenth), tissue near the probe bright.
-const NEAR_FIELD_TISSUE_FRACTION: f64 = 0.3;
+/// Near field at least this fraction of the sweep's echo level: tissue under the probe. Water's speckle
+/// reaches a quarter to a third of a faint echo's level on small simulated sweeps; tissue under the
+/// probe is nearly as bright as the brightest echo.
+const NEAR_FIELD_TISSUE_FRACTION: f64 = 0.5;
 
 /// A frame counts as showing bone when its agreeing bone echoes cover this fraction of its columns...
 pub const BONE_FRAME_COLUMN_FRACTION: f64 = 0.05;
