@@ -418,7 +418,11 @@ mod tests {
         let water_levels =
             [&water, &water, &empty].map(|f| near_field_and_echo_levels(f, w, h, 0.1));
         assert_eq!(tissue_frames(&water_levels), 0);
-        let tissue = bone_frame(w, h, 90);
+        // Tissue under the probe: bright speckle level throughout the near field.
+        let mut tissue = bone_frame(w, h, 90);
+        for x in tissue[..60 * w].iter_mut() {
+            *x = 180.0;
+        }
         let tissue_levels =
             [&tissue, &tissue, &empty].map(|f| near_field_and_echo_levels(f, w, h, 0.1));
         assert_eq!(tissue_frames(&tissue_levels), 2);
