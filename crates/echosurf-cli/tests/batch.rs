@@ -5,27 +5,7 @@
 use std::path::Path;
 
 mod common;
-use common::{echosurf, echosurf_ok};
-
-fn simulate(dir: &Path, seed: &str) {
-    echosurf_ok(&[
-        "simulate",
-        "--phantom",
-        "sphere",
-        "--seed",
-        seed,
-        "--frames-per-sweep",
-        "20",
-        "--width",
-        "96",
-        "--height",
-        "80",
-        "--pixel-size",
-        "0.4",
-        "--out",
-        dir.to_str().unwrap(),
-    ]);
-}
+use common::{echosurf, simulate_small_sphere};
 
 /// The summary table's rows: (row, name, status).
 fn summary(path: &Path) -> Vec<(usize, String, String)> {
@@ -43,8 +23,8 @@ fn summary(path: &Path) -> Vec<(usize, String, String)> {
 #[test]
 fn a_batch_with_a_broken_sweep_finishes_the_others_and_resumes() {
     let dir = tempfile::tempdir().unwrap();
-    simulate(&dir.path().join("a"), "3");
-    simulate(&dir.path().join("b"), "4");
+    simulate_small_sphere(&dir.path().join("a"), "3", &[]);
+    simulate_small_sphere(&dir.path().join("b"), "4", &[]);
     std::fs::create_dir(dir.path().join("c")).unwrap();
     std::fs::write(
         dir.path().join("c/sim.mha"),

@@ -1,11 +1,11 @@
 //! `echosurf-slicer`, the 3D Slicer command-line module: its `--xml` description (required elements
 //! always; schema validity when xmllint is installed) and a run driven as Slicer drives a CLI module.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 
 mod common;
-use common::echosurf_ok;
+use common::simulate_small_sphere;
 
 fn slicer(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_echosurf-slicer"))
@@ -164,32 +164,10 @@ fn the_description_validates_against_the_execution_model_schema() {
     );
 }
 
-/// A small simulated sphere sweep: (sequence, calibration).
-fn simulate(dir: &Path) -> (PathBuf, PathBuf) {
-    echosurf_ok(&[
-        "simulate",
-        "--phantom",
-        "sphere",
-        "--seed",
-        "3",
-        "--frames-per-sweep",
-        "20",
-        "--width",
-        "96",
-        "--height",
-        "80",
-        "--pixel-size",
-        "0.4",
-        "--out",
-        dir.to_str().unwrap(),
-    ]);
-    (dir.join("sim.mha"), dir.join("sim_config.xml"))
-}
-
 #[test]
 fn a_run_as_slicer_drives_it_writes_the_model_and_the_return_parameters() {
     let dir = tempfile::tempdir().unwrap();
-    let (seq, config) = simulate(&dir.path().join("data"));
+    let (seq, config) = simulate_small_sphere(&dir.path().join("data"), "3", &[]);
     // Slicer hands the module temporary copies of its inputs and a temporary .vtk for the model.
     let slicer_tmp = dir.path().join("SlicerTemp");
     std::fs::create_dir(&slicer_tmp).unwrap();

@@ -2,34 +2,10 @@
 //! give files that differ in the tag and the signs of x and y only; reports state frame and space; the
 //! VTK written opens in an independent reader (Python `meshio` or `vtk`, when installed).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 mod common;
-use common::echosurf_ok;
-
-/// A small simulated sphere sweep: (sequence, calibration).
-fn simulate(dir: &Path, extra: &[&str]) -> (PathBuf, PathBuf) {
-    let mut args = vec![
-        "simulate",
-        "--phantom",
-        "sphere",
-        "--seed",
-        "3",
-        "--frames-per-sweep",
-        "20",
-        "--width",
-        "96",
-        "--height",
-        "80",
-        "--pixel-size",
-        "0.4",
-        "--out",
-        dir.to_str().unwrap(),
-    ];
-    args.extend_from_slice(extra);
-    echosurf_ok(&args);
-    (dir.join("sim.mha"), dir.join("sim_config.xml"))
-}
+use common::{echosurf_ok, simulate_small_sphere};
 
 fn extract(seq: &Path, config: &Path, out: &Path, report: &Path, space: &str) {
     echosurf_ok(&[
@@ -53,7 +29,7 @@ fn extract(seq: &Path, config: &Path, out: &Path, report: &Path, space: &str) {
 #[test]
 fn ras_and_lps_meshes_differ_in_the_tag_and_the_signs_of_x_and_y_only() {
     let dir = tempfile::tempdir().unwrap();
-    let (seq, config) = simulate(dir.path(), &[]);
+    let (seq, config) = simulate_small_sphere(dir.path(), "3", &[]);
     for ext in ["vtk", "ply"] {
         let ras = dir.path().join(format!("ras.{ext}"));
         let lps = dir.path().join(format!("lps.{ext}"));
@@ -104,8 +80,8 @@ fn ras_and_lps_meshes_differ_in_the_tag_and_the_signs_of_x_and_y_only() {
 fn a_truth_written_in_lps_reads_back_where_the_ras_one_is() {
     let dir = tempfile::tempdir().unwrap();
     let (ras_dir, lps_dir) = (dir.path().join("ras"), dir.path().join("lps"));
-    simulate(&ras_dir, &[]);
-    simulate(&lps_dir, &["--space", "lps"]);
+    simulate_small_sphere(&ras_dir, "3", &[]);
+    simulate_small_sphere(&lps_dir, "3", &["--space", "lps"]);
     let (ras, ras_tag) = echosurf::io::read_mesh_and_space(&ras_dir.join("truth.ply")).unwrap();
     let (lps, lps_tag) = echosurf::io::read_mesh_and_space(&lps_dir.join("truth.ply")).unwrap();
     assert_eq!(ras_tag, Some(echosurf::io::Space::Ras));
@@ -148,7 +124,7 @@ fn the_vtk_written_opens_in_an_independent_reader() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let (seq, config) = simulate(dir.path(), &[]);
+    let (seq, config) = simulate_small_sphere(dir.path(), "3", &[]);
     let vtk = dir.path().join("mesh.vtk");
     extract(&seq, &config, &vtk, &dir.path().join("r.json"), "lps");
     // The reader prints the points and triangles it found; they must be what the file says.
