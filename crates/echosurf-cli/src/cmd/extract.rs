@@ -71,8 +71,9 @@ pub struct Args {
     pub echo_margin: f64,
     /// Output surface: `iso` (the iso-surface, a sheath of two sheets around a thin echo), `ridge`
     /// (one smooth sheet through the echo's ridge: on the boundary, open where no echo came back), or
-    /// `auto`: the ridge sheet where the echoes are thin ridges (80 % of the iso-surface's probe side
-    /// finds the echo's peak within 1.5 mm along the beam), the iso-surface otherwise.
+    /// `auto`: the ridge sheet on a bone sweep and where the echoes are thin ridges (80 % of the
+    /// iso-surface's probe side finds the echo's peak within 1.5 mm along the beam), the iso-surface
+    /// otherwise.
     #[arg(long, default_value = "auto")]
     pub sheet: String,
     /// Ridge sheet: distance (mm) over which the sheet averages the ridge points.

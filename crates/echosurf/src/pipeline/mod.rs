@@ -224,7 +224,8 @@ pub enum Sheet {
     EchoRidge,
     /// Per level, the echo-ridge sheet when the echoes are thin ridges, the iso-surface otherwise: the
     /// ridge sheet is taken when at least [`AUTO_RIDGE_MIN_REACHED_SHARE`] of the iso-surface's proximal
-    /// sheet found the field's maximum along the beam within reach ([`RidgeStats::reached_share`]).
+    /// sheet found the field's maximum along the beam within reach ([`RidgeStats::reached_share`]),
+    /// and always on a bone sweep (its echoes are one-sided ridges over a shadow).
     Auto,
 }
 
@@ -833,6 +834,7 @@ pub fn extract(
             domain: &domain,
             surface_options: &surface_options,
             levels: prepared.levels,
+            bone_sweep: prepared.counts.bone_sweep,
         };
         meter.stage("ridge", || {
             move_onto_echo_ridges(&mut meshes, &mut sheets, &ridge, options)
@@ -919,6 +921,8 @@ struct RidgeInputs<'a> {
     domain: &'a SurfaceDomain,
     surface_options: &'a SurfaceOptions,
     levels: Option<IntensityLevels>,
+    /// A bone sweep's echoes are one-sided ridges (a shadow below): `Sheet::Auto` draws the ridge sheet.
+    bone_sweep: bool,
 }
 
 /// Replaces each level's iso-surface by one sheet on its echoes' ridges, extended by the ridges of the
@@ -935,7 +939,10 @@ fn move_onto_echo_ridges(
         let (ridge, stats) =
             proximal_sheet_on_ridge(mesh, inputs.model, &beam, &RidgeOptions::default());
         used.ridge_reached_share = Some(stats.reached_share());
-        if options.sheet == Sheet::Auto && stats.reached_share() < AUTO_RIDGE_MIN_REACHED_SHARE {
+        if options.sheet == Sheet::Auto
+            && !inputs.bone_sweep
+            && stats.reached_share() < AUTO_RIDGE_MIN_REACHED_SHARE
+        {
             continue;
         }
         let (mut sheet, _) = sheet_through_points(

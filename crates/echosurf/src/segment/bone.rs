@@ -20,6 +20,9 @@ pub struct BoneEchoOptions {
     /// No echo deeper than `clear_below_mm` under it reaches `strong_ratio` of its brightness.
     pub clear_below_mm: f64,
     pub strong_ratio: f64,
+    /// The echo reaches at least this fraction of the frame's brightest (smoothed) pixel: the dark
+    /// margins beside the scan and the last faint rows are not echoes, however they compare locally.
+    pub min_echo_fraction: f64,
     /// Neighbouring columns within this distance (mm)...
     pub agree_width_mm: f64,
     /// ...must, for at least this fraction of them, hold a bone echo within `agree_depth_mm`.
@@ -42,6 +45,7 @@ impl Default for BoneEchoOptions {
             tissue_ratio: 0.5,
             clear_below_mm: 3.0,
             strong_ratio: 0.6,
+            min_echo_fraction: 0.2,
             agree_width_mm: 1.0,
             agree_fraction: 0.6,
             agree_depth_mm: 1.0,
@@ -76,6 +80,7 @@ impl BoneEchoOptions {
             self.shadow_ratio,
             self.tissue_ratio,
             self.strong_ratio,
+            self.min_echo_fraction,
             self.agree_fraction,
         ];
         if fractions
@@ -108,8 +113,9 @@ pub struct BoneEcho {
 }
 
 /// Per column of a smoothed (clipped, row-major) frame, its bone echo: the deepest local maximum down
-/// the column that stands out of the tissue above it, has a shadow below and no strong echo under it;
-/// kept where the neighbouring columns agree.
+/// the column that stands out of the tissue above it, has a shadow below (seen over its whole window,
+/// so not in the frame's last rows) and no strong echo under it; kept where the neighbouring columns
+/// agree.
 pub fn bone_echoes(
     smoothed: &[f32],
     width: usize,
@@ -123,6 +129,16 @@ pub fn bone_echoes(
     let clear = px(options.clear_below_mm);
     let mut rows = vec![None; width];
     let mut column = vec![0f32; height];
+    let brightest = smoothed
+        .iter()
+        .copied()
+        .filter(|x| x.is_finite())
+        .fold(0f32, f32::max);
+    let min_echo = options.min_echo_fraction * f64::from(brightest);
+    // The whole shadow window lies in the frame, and `clear` rows under the echo are checked.
+    let last_row = height
+        .saturating_sub(clear + 1)
+        .min((height + 1).saturating_sub(s1));
     // Prefix sums give window means; suffix maxima the strongest echo below a depth.
     let mut prefix = vec![0f64; height + 1];
     let mut suffix_max = vec![0f32; height + 1];
@@ -145,12 +161,15 @@ pub fn bone_echoes(
                 (prefix[hi] - prefix[lo]) / (hi - lo) as f64
             }
         };
-        for v in a1.max(1)..height.saturating_sub(clear + 1) {
+        for v in a1.max(1)..last_row {
             let echo = column[v];
             if echo <= 0.0 || echo < column[v - 1] || echo < column[v + 1] {
                 continue;
             }
             let echo = f64::from(echo);
+            if echo < min_echo {
+                continue;
+            }
             let above = mean(v - a1, v - a0);
             if echo - above < options.prominence * echo {
                 continue;
@@ -350,7 +369,7 @@ mod tests {
 
     #[test]
     fn finds_a_bright_echo_over_a_shadow() {
-        let (w, h) = (40, 200);
+        let (w, h) = (40, 240);
         let f = bone_frame(w, h, 90);
         let rows: Vec<Option<usize>> = bone_echoes(&f, w, h, 0.1, &BoneEchoOptions::default())
             .iter()
@@ -361,7 +380,7 @@ mod tests {
 
     #[test]
     fn tissue_below_is_not_a_shadow() {
-        let (w, h) = (40, 200);
+        let (w, h) = (40, 240);
         let mut f = bone_frame(w, h, 90);
         // Speckle-level tissue continues under the echo: no shadow, no bone.
         for x in f[95 * w..].iter_mut() {
@@ -376,7 +395,7 @@ mod tests {
 
     #[test]
     fn a_strong_echo_under_it_is_not_bone() {
-        let (w, h) = (40, 200);
+        let (w, h) = (40, 240);
         let mut f = bone_frame(w, h, 60);
         for x in f[150 * w..152 * w].iter_mut() {
             *x = 200.0;
@@ -392,7 +411,7 @@ mod tests {
 
     #[test]
     fn isolated_columns_are_dropped() {
-        let (w, h) = (40, 200);
+        let (w, h) = (40, 240);
         let mut f = vec![80f32; w * h];
         // One column with a bone-like profile: its neighbours disagree.
         let col = bone_frame(1, h, 90);
@@ -408,7 +427,7 @@ mod tests {
 
     #[test]
     fn water_near_field_is_not_tissue() {
-        let (w, h) = (40, 200);
+        let (w, h) = (40, 240);
         let mut water = vec![5f32; w * h];
         for x in water[100 * w..102 * w].iter_mut() {
             *x = 200.0;
@@ -426,5 +445,34 @@ mod tests {
         let tissue_levels =
             [&tissue, &tissue, &empty].map(|f| near_field_and_echo_levels(f, w, h, 0.1));
         assert_eq!(tissue_frames(&tissue_levels), 2);
+    }
+
+    #[test]
+    fn an_echo_whose_shadow_runs_off_the_frame_is_not_bone() {
+        // At 0.1 mm/px the 2-12 mm shadow window needs 120 rows under the echo: at row 150 of 240 the
+        // frame ends first, so the dark rows after it prove nothing.
+        let (w, h) = (40, 240);
+        let f = bone_frame(w, h, 150);
+        let echoes = bone_echoes(&f, w, h, 0.1, &BoneEchoOptions::default());
+        assert!(echoes.iter().all(Option::is_none), "{echoes:?}");
+        let f = bone_frame(w, h, 110);
+        let echoes = bone_echoes(&f, w, h, 0.1, &BoneEchoOptions::default());
+        assert!(echoes.iter().all(|e| e.is_some_and(|e| e.row == 110)));
+    }
+
+    #[test]
+    fn faint_ripples_in_the_dark_margin_are_not_bone() {
+        // Columns 0-19: the scan (tissue, bone echo at 90, shadow); columns 20-39: the black margin
+        // beside it with a faint 3-grey line, which stands out of its own zero surroundings.
+        let (w, h) = (40, 240);
+        let mut f = bone_frame(w, h, 90);
+        for v in 0..h {
+            for u in 20..w {
+                f[v * w + u] = if (60..=61).contains(&v) { 3.0 } else { 0.0 };
+            }
+        }
+        let echoes = bone_echoes(&f, w, h, 0.1, &BoneEchoOptions::default());
+        assert!(echoes[..18].iter().all(|e| e.is_some_and(|e| e.row == 90)));
+        assert!(echoes[22..].iter().all(Option::is_none), "{echoes:?}");
     }
 }
