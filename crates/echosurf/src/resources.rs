@@ -4,7 +4,12 @@
 //! a process reset that mark (`echo 5 > /proc/self/clear_refs`), which gives a true per-stage peak; where
 //! that is unavailable the lifetime peak is reported instead and flagged as such.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
+
+/// The highest `VmHWM` seen before any [`reset_peak_rss`] (bytes), so the lifetime peak survives the
+/// per-stage resets.
+static PEAK_BEFORE_RESETS_BYTES: AtomicU64 = AtomicU64::new(0);
 
 /// A zeroed buffer of `n` elements, or a [`crate::Error::ResourceLimit`] naming `what` when the
 /// allocation fails (instead of the abort a plain `vec!` gives under `ulimit -v` or overcommit limits).
@@ -41,9 +46,23 @@ fn read_status_kib(key: &str) -> Option<u64> {
         .ok()
 }
 
-/// Resets the high-water mark to the current RSS; false where the platform does not allow it.
+/// Resets the high-water mark to the current RSS; false where the platform does not allow it. The
+/// mark before the reset is kept for [`lifetime_peak_rss_bytes`].
 pub fn reset_peak_rss() -> bool {
+    if let Some(peak) = peak_rss_bytes() {
+        PEAK_BEFORE_RESETS_BYTES.fetch_max(peak, Ordering::Relaxed);
+    }
     std::fs::write("/proc/self/clear_refs", b"5").is_ok()
+}
+
+/// Resident-set high-water mark over the whole process so far (bytes), per-stage resets included; a
+/// reset lowers `VmHWM` and with it what `getrusage` and `/usr/bin/time` report.
+pub fn lifetime_peak_rss_bytes() -> Option<u64> {
+    let before = PEAK_BEFORE_RESETS_BYTES.load(Ordering::Relaxed);
+    match peak_rss_bytes() {
+        Some(now) => Some(now.max(before)),
+        None => (before > 0).then_some(before),
+    }
 }
 
 /// Wall time and peak memory of one stage.
@@ -107,6 +126,12 @@ mod tests {
         meter.stage("idle", || ());
         assert_eq!(meter.stages.len(), 2);
         assert_eq!(meter.stages[0].stage, "alloc");
+        if let Some(lifetime) = lifetime_peak_rss_bytes() {
+            assert!(
+                lifetime >= meter.peak_rss_bytes().unwrap_or(0),
+                "{lifetime}"
+            );
+        }
         if let (Some(alloc_peak), true) = (
             meter.stages[0].peak_rss_bytes,
             meter.stages[0].peak_is_per_stage,
