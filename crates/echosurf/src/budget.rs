@@ -27,11 +27,8 @@ const PU_FIT_BYTES_PER_SAMPLE: u64 = 320;
 const PU_FIT_FRESH_BYTES_PER_SAMPLE: u64 = 620;
 /// Fast solver per centre: treecode nodes and moments, neighbour lists, Schwarz blocks, Krylov basis.
 const FAST_FIT_BYTES_PER_CENTRE: u64 = 4096;
-/// Surface and echo-ridge stages per sample fitted: the lattice nodes followed from the seeds, the raw
-/// and clustered meshes and the ridge sheet.
-const SURFACE_BYTES_PER_SAMPLE: u64 = 250;
-/// Surface of a saved model (`echosurf surface`) per seed point at 0.5 mm: the lattice nodes followed
-/// from it, the trust buckets and the meshes (the model itself is resident when the check runs).
+/// Surface per seed point at 0.5 mm: the lattice nodes followed from it, the trust buckets and the
+/// meshes (the fitted model is resident when the check runs).
 const SURFACE_BYTES_PER_SEED: u64 = 7000;
 
 static LARGEST_ESTIMATE_BYTES: AtomicU64 = AtomicU64::new(0);
@@ -94,8 +91,6 @@ pub struct ExtractMemoryEstimate {
     pub samples: u64,
     /// The fit: dense matrix (direct solver), patches (partition of unity) or treecode (fast solver).
     pub fit: u64,
-    /// The surface and echo-ridge stages.
-    pub surface: u64,
 }
 
 impl ExtractMemoryEstimate {
@@ -104,7 +99,6 @@ impl ExtractMemoryEstimate {
             .saturating_add(self.normalised_frames)
             .saturating_add(self.samples)
             .saturating_add(self.fit)
-            .saturating_add(self.surface)
     }
 }
 
@@ -190,7 +184,6 @@ pub fn estimate_extract_memory(
         },
         samples: binned.saturating_mul(SAMPLE_BYTES).saturating_add(thinning),
         fit: fit_bytes(fitted, &options.fit),
-        surface: fitted.saturating_mul(SURFACE_BYTES_PER_SAMPLE),
     }
 }
 
@@ -212,14 +205,12 @@ pub fn check_extract_budget_after_segmentation(
             larger --memory-budget"
                 .to_string()
         } else {
-            // Largest sample count whose fit and surface fit in what is left.
+            // Largest sample count whose fit fits in what is left.
             let room = budget_bytes - fixed;
             let (mut lo, mut hi) = (0u64, options.max_samples as u64);
             while lo < hi {
                 let mid = (lo + hi).div_ceil(2);
-                let cost = fit_bytes(mid, &options.fit)
-                    .saturating_add(mid.saturating_mul(SURFACE_BYTES_PER_SAMPLE));
-                if cost <= room {
+                if fit_bytes(mid, &options.fit) <= room {
                     lo = mid;
                 } else {
                     hi = mid - 1;
@@ -229,14 +220,14 @@ pub fn check_extract_budget_after_segmentation(
         };
         format!(
             "extract would need about {} ({} resident with the frames and bands, normalised frames {}, \
-            samples of {} kept pixels {}, fit {}, surface {}) but the memory budget is {}: {advice}",
+            samples of {} kept pixels {}, fit {}; the surface is checked after the fit) but the memory \
+             budget is {}: {advice}",
             mb(e.total()),
             mb(e.resident),
             mb(e.normalised_frames),
             counts.kept_pixels,
             mb(e.samples),
             mb(e.fit),
-            mb(e.surface),
             mb(budget_bytes),
         )
     })
@@ -264,32 +255,32 @@ pub fn check_fit_budget(
     })
 }
 
-/// Refuses surfacing a model of `centres` centres from `seeds` seed points (the model's centres near
-/// a level, which the surface is followed from) past `budget_bytes`.
-pub fn check_surface_budget(
-    centres: u64,
-    seeds: u64,
-    resolution_mm: f64,
-    budget_bytes: u64,
-) -> Result<()> {
+/// Refuses surfacing from `seeds` seed points (the points near a level the surface is followed
+/// from; `extract` and `surface` take at most `pipeline::MAX_SURFACE_SEEDS`) at `resolution_mm` past
+/// `budget_bytes`. The fitted model is resident when this runs.
+pub fn check_surface_budget(seeds: u64, resolution_mm: f64, budget_bytes: u64) -> Result<()> {
     let resident = resident_bytes();
-    // Finer lattices follow more nodes over the same surface (area / resolution^2); 0.5 mm is the
-    // default the per-seed figure was measured at.
-    let scale = (0.5 / resolution_mm).powi(2).clamp(1e-6, 1e12);
-    let surface =
-        (seeds as f64 * SURFACE_BYTES_PER_SEED as f64 * scale).min(u64::MAX as f64) as u64;
+    let surface = surface_bytes(seeds, resolution_mm);
     let need = resident.saturating_add(surface);
     check_need(need, budget_bytes, || {
         format!(
-            "surfacing {centres} centres from {seeds} seed points at {resolution_mm} mm would need \
-             about {} ({} resident, surface {}) but the memory budget is {}: a coarser --resolution, \
-             fewer levels, or raise --memory-budget",
+            "surfacing from {seeds} seed points at {resolution_mm} mm would need about {} ({} \
+             resident with the fitted model, surface {}) but the memory budget is {}: a coarser \
+             --resolution, or raise --memory-budget",
             mb(need),
             mb(resident),
             mb(surface),
             mb(budget_bytes)
         )
     })
+}
+
+/// Bytes of the surface followed from `seeds` seed points on a `resolution_mm` lattice.
+fn surface_bytes(seeds: u64, resolution_mm: f64) -> u64 {
+    // Finer lattices follow more nodes over the same surface (area / resolution^2); 0.5 mm is the
+    // default the per-seed figure was measured at.
+    let scale = (0.5 / resolution_mm).powi(2).clamp(1e-6, 1e12);
+    (seeds as f64 * SURFACE_BYTES_PER_SEED as f64 * scale).min(u64::MAX as f64) as u64
 }
 
 /// Per area sample of `compare`: the point (3 x f64), its distance (f64) and the parallel collection's

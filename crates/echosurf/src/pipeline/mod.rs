@@ -831,6 +831,13 @@ pub fn extract(
         trust_distance_mm,
         ..options.surface.clone()
     };
+    if let Some(budget) = options.memory_budget_bytes {
+        crate::budget::check_surface_budget(
+            domain.seeds.len() as u64,
+            surface_options.resolution_mm,
+            budget,
+        )?;
+    }
     let (mut meshes, surface_stats) = meter.stage("surface", || {
         extract_surfaces_with_stats(&model, &levels, &domain, &surface_options)
     })?;
