@@ -4,7 +4,11 @@
 #[macro_use]
 mod stdout;
 mod cmd;
+mod oom;
 mod progress;
+
+#[global_allocator]
+static ALLOCATOR: oom::CleanOutOfMemory = oom::CleanOutOfMemory;
 
 use std::process::ExitCode;
 

@@ -182,3 +182,37 @@ fn fit_and_surface_refuse_past_the_budget_naming_the_option() {
     );
     assert!(!surface.exists());
 }
+
+/// Under an address-space limit below what the run needs, any failed allocation (not only the big
+/// buffers reserved fallibly) ends the run with exit 1 and a message, not an abort (134), and leaves
+/// no output or hidden temporary file.
+#[test]
+fn running_out_of_address_space_is_an_error_not_an_abort() {
+    if !Path::new("/bin/sh").exists() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (seq, config) = common::simulate_small_sphere(dir.path(), "5", &[]);
+    let out_dir = dir.path().join("out");
+    std::fs::create_dir(&out_dir).unwrap();
+    let mesh = out_dir.join("m.ply");
+    // This extract's peak resident memory is about 100 MB; 150 MB of address space holds the
+    // binary, the thread stacks and the allocator's arenas but not the run.
+    let output = std::process::Command::new("/bin/sh")
+        .arg("-c")
+        .arg("ulimit -v 150000 && exec \"$0\" extract \"$1\" --config \"$2\" --out \"$3\"")
+        .arg(env!("CARGO_BIN_EXE_echosurf"))
+        .arg(&seq)
+        .arg(&config)
+        .arg(&mesh)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("error: out of memory"), "{stderr}");
+    let left: Vec<_> = std::fs::read_dir(&out_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert!(left.is_empty(), "left {left:?}");
+}

@@ -4,6 +4,7 @@
 //! a process reset that mark (`echo 5 > /proc/self/clear_refs`), which gives a true per-stage peak; where
 //! that is unavailable the lifetime peak is reported instead and flagged as such.
 
+use std::cell::Cell;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
@@ -11,11 +12,31 @@ use std::time::Instant;
 /// per-stage resets.
 static PEAK_BEFORE_RESETS_BYTES: AtomicU64 = AtomicU64::new(0);
 
+thread_local! {
+    /// How many [`fallibly`] calls this thread is inside.
+    static FALLIBLE_DEPTH: Cell<u32> = const { Cell::new(0) };
+}
+
+/// Runs `reserve` (a `try_reserve` whose failure the caller turns into an error) telling a process's
+/// global allocator that a failed allocation here is handled: it should return null rather than end
+/// the process (the CLI's allocator ends it cleanly on any other failure).
+pub fn fallibly<T>(reserve: impl FnOnce() -> T) -> T {
+    FALLIBLE_DEPTH.with(|d| d.set(d.get() + 1));
+    let out = reserve();
+    FALLIBLE_DEPTH.with(|d| d.set(d.get() - 1));
+    out
+}
+
+/// True inside [`fallibly`] on this thread (for a global allocator's failure path).
+pub fn allocation_is_fallible() -> bool {
+    FALLIBLE_DEPTH.try_with(|d| d.get() > 0).unwrap_or(false)
+}
+
 /// A zeroed buffer of `n` elements, or a [`crate::Error::ResourceLimit`] naming `what` when the
 /// allocation fails (instead of the abort a plain `vec!` gives under `ulimit -v` or overcommit limits).
 pub fn try_zeroed_vec<T: Clone + Default>(n: usize, what: &str) -> crate::Result<Vec<T>> {
     let mut v = Vec::new();
-    v.try_reserve_exact(n).map_err(|_| {
+    crate::resources::fallibly(|| v.try_reserve_exact(n)).map_err(|_| {
         crate::Error::ResourceLimit(format!(
             "{what}: could not allocate {n} x {} bytes",
             std::mem::size_of::<T>()
@@ -114,6 +135,16 @@ impl StageMeter {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fallibly_marks_only_its_own_call() {
+        assert!(!allocation_is_fallible());
+        assert!(fallibly(allocation_is_fallible));
+        assert!(fallibly(
+            || fallibly(allocation_is_fallible) && allocation_is_fallible()
+        ));
+        assert!(!allocation_is_fallible());
+    }
 
     #[test]
     fn stage_meter_records_every_stage_in_order() {

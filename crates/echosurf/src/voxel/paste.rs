@@ -71,7 +71,7 @@ pub(super) fn c_cast(x: f64, integer: bool) -> f64 {
 /// Allocates a zeroed buffer, turning allocation failure into an error instead of an abort.
 pub(super) fn try_zeroed<T: Clone + Default>(n: usize, what: &str) -> Result<Vec<T>> {
     let mut v = Vec::new();
-    v.try_reserve_exact(n).map_err(|_| {
+    crate::resources::fallibly(|| v.try_reserve_exact(n)).map_err(|_| {
         Error::ResourceLimit(format!(
             "could not allocate the {what} ({n} voxels); use a coarser spacing"
         ))
