@@ -1,6 +1,8 @@
-//! Memory budget of `extract`: an up-front estimate of the big buffers, refused with
-//! [`Error::ResourceLimit`] saying what would fit (fewer samples, coarser resolution) instead of running
-//! out of memory half-way. The voxel route has its own estimate (`voxel::estimated_memory_bytes`).
+//! Memory budgets of `extract`, `fit`, `surface` and `compare`: each estimate is what is resident now
+//! plus the buffers still to come, computed from the inputs' real sizes before they are allocated and
+//! refused with [`Error::ResourceLimit`] saying what would fit instead of running out of memory
+//! half-way. The voxel grid has its own (`voxel::estimated_memory_bytes`). Constants and the table they
+//! were measured on: docs/decisions/0028-memory-budget-estimates.md.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
