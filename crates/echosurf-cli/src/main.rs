@@ -4,7 +4,11 @@
 #[macro_use]
 mod stdout;
 mod cmd;
+mod oom;
 mod progress;
+
+#[global_allocator]
+static ALLOCATOR: oom::CleanOutOfMemory = oom::CleanOutOfMemory;
 
 use std::process::ExitCode;
 
@@ -16,6 +20,10 @@ use clap::{Parser, Subcommand};
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// After the command, print on stderr the memory it estimated it would need (the largest figure a
+    /// --memory-budget check compared) and the peak resident memory it measured.
+    #[arg(long, global = true)]
+    memory_report: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -69,6 +77,23 @@ pub(crate) fn error_message(error: &anyhow::Error) -> String {
     message
 }
 
+/// `--memory-report`: the estimate and the measured peak, in MB, and their ratio.
+fn memory_report_line() -> String {
+    let mb = |b: u64| format!("{:.1} MB", b as f64 / 1e6);
+    let estimate = echosurf::budget::largest_estimate_bytes();
+    let peak = echosurf::resources::lifetime_peak_rss_bytes();
+    let text = |b: Option<u64>| b.map(mb).unwrap_or_else(|| "none".into());
+    let ratio = match (estimate, peak) {
+        (Some(e), Some(p)) => format!(" (peak / estimate {:.2})", p as f64 / e as f64),
+        _ => String::new(),
+    };
+    format!(
+        "memory: estimate {}, peak resident {}{ratio}",
+        text(estimate),
+        text(peak)
+    )
+}
+
 /// Exit code of a run stopped by Ctrl-C, SIGTERM or SIGHUP (128 + SIGINT, as shells report Ctrl-C).
 const INTERRUPTED_EXIT_CODE: i32 = 130;
 
@@ -105,6 +130,9 @@ fn main() -> ExitCode {
         Command::Batch(a) => cmd::batch::run(a),
     };
     let result = result.and_then(|()| Ok(stdout::flush_out()?));
+    if cli.memory_report {
+        eprintln!("{}", memory_report_line());
+    }
     match result {
         Ok(()) => ExitCode::SUCCESS,
         // The reader of our output left (`| head`): stop quietly, as a program killed by SIGPIPE would.

@@ -212,15 +212,24 @@ fn memory_budget_refuses_up_front_with_what_would_fit() {
             .unwrap();
         (out, start.elapsed().as_secs_f64())
     };
-    // A 0.05 mm lattice over the sweep needs gigabytes: refused, with a resolution that fits.
-    let (out, seconds) = extract(&["--resolution", "0.05", "--memory-budget", "2000"]);
+    // A 0.05 mm lattice follows 100 times the nodes of the default 0.5 mm over the same surface:
+    // refused before surfacing, naming the resolution.
+    let (out, seconds) = extract(&["--resolution", "0.05", "--memory-budget", "300"]);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
-    assert!(stderr.contains("memory budget is 2000 MB"), "{stderr}");
+    assert!(stderr.contains("memory budget is 300 MB"), "{stderr}");
     assert!(stderr.contains("--resolution"), "{stderr}");
     assert!(seconds < MAX_SECONDS, "refusal took {seconds} s");
-    // 100k samples with the fast solver need ~400 MB: refused with a sample count that fits.
-    let (out, _) = extract(&["--max-samples", "100000", "--memory-budget", "300"]);
+    // Every kept sample in one dense system needs gigabytes: refused after segmentation with a
+    // sample count that fits.
+    let (out, _) = extract(&[
+        "--max-samples",
+        "100000",
+        "--solver",
+        "direct",
+        "--memory-budget",
+        "300",
+    ]);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(stderr.contains("--max-samples"), "{stderr}");

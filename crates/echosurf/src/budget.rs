@@ -1,12 +1,12 @@
-//! Memory budget of `extract`: an up-front estimate of the big buffers, refused with
-//! [`Error::ResourceLimit`] saying what would fit (fewer samples, coarser resolution) instead of running
-//! out of memory half-way. The voxel route has its own estimate (`voxel::estimated_memory_bytes`).
+//! Memory budgets of `extract`, `fit`, `surface` and `compare`: each estimate is what is resident now
+//! plus the buffers still to come, computed from the inputs' real sizes before they are allocated and
+//! refused with [`Error::ResourceLimit`] saying what would fit instead of running out of memory
+//! half-way. The voxel grid has its own (`voxel::estimated_memory_bytes`). Constants and the table they
+//! were measured on: docs/decisions/0028-memory-budget-estimates.md.
 
-use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 
-use glam::DVec3;
-
-use crate::io::{self, Calibration, TrackedSequence};
+use crate::io::TrackedSequence;
 use crate::pipeline::ExtractOptions;
 use crate::rbf::SolverChoice;
 use crate::{Error, Result};
@@ -15,14 +15,55 @@ use crate::{Error, Result};
 const DEFAULT_FRACTION: f64 = 0.5;
 /// Budget when the machine's memory cannot be read.
 const FALLBACK_BUDGET_BYTES: u64 = 8 << 30;
-/// Per kept pixel before decimation: position (3 x f64), intensity (f64), frame/pixel index.
-const SAMPLE_BYTES: u64 = 48;
-/// Band mask and smoothed frame per pixel while segmenting (one byte + one f32).
-const SEGMENT_BYTES_PER_PIXEL: u64 = 5;
+/// Band masks and smoothing buffers per pixel while segmenting.
+const SEGMENT_BYTES_PER_PIXEL: u64 = 2;
+/// Per binned sample: position (3 x f64), grey level (f32), frame (u32), its block (2 x u32), with
+/// the growth slack of the collecting vectors.
+const SAMPLE_BYTES: u64 = 40;
+/// Per binned sample while thinning them: the near-echo flags, the shuffled indices and the kept set.
+const DECIMATE_BYTES_PER_SAMPLE: u64 = 16;
+/// Partition-of-unity fit per sample handed to it inside `extract`: its patches' overlapping centres,
+/// their dense blocks and the model, less what it reuses of the memory the sampling stages freed.
+const PU_FIT_BYTES_PER_SAMPLE: u64 = 320;
+/// The same fit in a process that did nothing before (`echosurf fit`): nothing freed to reuse.
+const PU_FIT_FRESH_BYTES_PER_SAMPLE: u64 = 620;
 /// Fast solver per centre: treecode nodes and moments, neighbour lists, Schwarz blocks, Krylov basis.
 const FAST_FIT_BYTES_PER_CENTRE: u64 = 4096;
-/// Surface lattice per node: the function value (f64) and crossing flags.
-const LATTICE_BYTES_PER_NODE: u64 = 16;
+/// Surface per seed point at 0.5 mm: the lattice nodes followed from it, the trust buckets and the
+/// meshes (the fitted model is resident when the check runs).
+const SURFACE_BYTES_PER_SEED: u64 = 7000;
+
+static LARGEST_ESTIMATE_BYTES: AtomicU64 = AtomicU64::new(0);
+
+/// Keeps `bytes` as this process's estimate of its peak resident memory when it is the largest yet
+/// (every budget check records the estimate it compared), for `--memory-report`.
+pub fn record_estimate(bytes: u64) {
+    LARGEST_ESTIMATE_BYTES.fetch_max(bytes, Ordering::Relaxed);
+}
+
+/// The largest estimate a budget check of this process made, if any made one.
+pub fn largest_estimate_bytes() -> Option<u64> {
+    match LARGEST_ESTIMATE_BYTES.load(Ordering::Relaxed) {
+        0 => None,
+        b => Some(b),
+    }
+}
+
+/// What the process holds now (binary, allocator, decoded inputs): the base every estimate adds the
+/// buffers still to come to. 0 where the platform does not report it.
+pub fn resident_bytes() -> u64 {
+    crate::resources::current_rss_bytes().unwrap_or(0)
+}
+
+/// Records `need` and refuses it past `budget_bytes` with `message(need, budget)`.
+fn check_need(need: u64, budget_bytes: u64, message: impl FnOnce() -> String) -> Result<()> {
+    record_estimate(need);
+    if need <= budget_bytes {
+        Ok(())
+    } else {
+        Err(Error::ResourceLimit(message()))
+    }
+}
 
 /// Half of `MemTotal` from `/proc/meminfo`, or 8 GiB where that is unavailable.
 pub fn default_memory_budget_bytes() -> u64 {
@@ -41,91 +82,45 @@ pub fn default_memory_budget_bytes() -> u64 {
         .unwrap_or(FALLBACK_BUDGET_BYTES)
 }
 
-/// The big buffers of one extract run, in bytes.
+/// The buffers of one RBF extract run still to come once the bands are segmented, in bytes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ExtractMemoryEstimate {
-    /// The decoded pixels (already in memory when the estimate is made).
-    pub sequence: u64,
-    /// Band masks and smoothed frames.
-    pub segment: u64,
-    /// Samples of all kept pixels before decimation (upper bound: every pixel kept).
+    /// Resident when the estimate is made: the decoded frames, their band masks and the process.
+    pub resident: u64,
+    /// The contrast-normalised copy of the frames a bone sweep samples from.
+    pub normalised_frames: u64,
+    /// Samples of the kept pixels (one per bin) and their thinning.
     pub samples: u64,
-    /// The fit: dense matrix (direct solver) or treecode/preconditioner (fast solver).
+    /// The fit: dense matrix (direct solver), patches (partition of unity) or treecode (fast solver).
     pub fit: u64,
-    /// The surface lattice over the frames' bounding box.
-    pub lattice: u64,
 }
 
 impl ExtractMemoryEstimate {
     pub fn total(&self) -> u64 {
-        self.sequence
-            .saturating_add(self.segment)
+        self.resident
+            .saturating_add(self.normalised_frames)
             .saturating_add(self.samples)
             .saturating_add(self.fit)
-            .saturating_add(self.lattice)
     }
 }
 
-fn fit_bytes(samples: u64, options: &ExtractOptions) -> u64 {
-    let direct = match options.fit.solver {
-        SolverChoice::Direct => true,
-        SolverChoice::Fast | SolverChoice::PartitionOfUnity => false,
-        SolverChoice::Auto => samples <= options.fit.direct_max_points as u64,
+/// Bytes the fit of `samples` points takes with `options`' solver (as `rbf::fit` chooses it) after the
+/// extract's earlier stages.
+pub fn fit_bytes(samples: u64, options: &crate::rbf::FitOptions) -> u64 {
+    fit_bytes_with(samples, options, PU_FIT_BYTES_PER_SAMPLE)
+}
+
+fn fit_bytes_with(samples: u64, options: &crate::rbf::FitOptions, pu_bytes_per_sample: u64) -> u64 {
+    let solver = match options.solver {
+        SolverChoice::Auto if samples <= options.direct_max_points as u64 => SolverChoice::Direct,
+        SolverChoice::Auto => SolverChoice::PartitionOfUnity,
+        s => s,
     };
-    if direct {
-        // The (n + 4)^2 system in f64 and its LU factors in place.
-        (samples + 4).saturating_mul(samples + 4).saturating_mul(8)
-    } else {
-        samples.saturating_mul(FAST_FIT_BYTES_PER_CENTRE)
-    }
-}
-
-fn lattice_nodes(extent_mm: DVec3, resolution_mm: f64) -> u64 {
-    let per_axis = |e: f64| ((e / resolution_mm).ceil().max(0.0) + 1.0).min(1e12) as u64;
-    per_axis(extent_mm.x)
-        .saturating_mul(per_axis(extent_mm.y))
-        .saturating_mul(per_axis(extent_mm.z))
-}
-
-/// Extent (mm) of the frames' bounding box, or `None` when no frame can be placed (the pipeline then
-/// reports why).
-fn frames_extent_mm(
-    sequence: &TrackedSequence,
-    calibration: Option<&Calibration>,
-    options: &ExtractOptions,
-) -> Option<DVec3> {
-    let poses = io::resolve_poses(
-        sequence,
-        calibration,
-        options.reference,
-        Path::new("<sequence>"),
-    )
-    .ok()?;
-    let (lo, hi) = io::world_bounds(sequence, &poses.poses)?;
-    Some(hi - lo)
-}
-
-/// Estimates the big buffers of `pipeline::extract` on this sequence with these options.
-pub fn estimate_extract_memory(
-    sequence: &TrackedSequence,
-    calibration: Option<&Calibration>,
-    options: &ExtractOptions,
-) -> ExtractMemoryEstimate {
-    let pixels = (sequence.width as u64)
-        .saturating_mul(sequence.height as u64)
-        .saturating_mul(sequence.frames.len() as u64);
-    let samples_kept = (options.max_samples as u64).min(pixels);
-    let lattice = frames_extent_mm(sequence, calibration, options)
-        .map(|e| lattice_nodes(e, options.surface.resolution_mm))
-        .unwrap_or(0)
-        .saturating_mul(LATTICE_BYTES_PER_NODE);
-    ExtractMemoryEstimate {
-        sequence: (sequence.pixels.len() as u64)
-            .saturating_mul(sequence.pixels.element_type().size_bytes() as u64),
-        segment: pixels.saturating_mul(SEGMENT_BYTES_PER_PIXEL),
-        samples: pixels.saturating_mul(SAMPLE_BYTES),
-        fit: fit_bytes(samples_kept, options),
-        lattice,
+    match solver {
+        // The (n + 4)^2 system in f64 and its LU factors.
+        SolverChoice::Direct => (samples + 4).saturating_mul(samples + 4).saturating_mul(16),
+        SolverChoice::Fast => samples.saturating_mul(FAST_FIT_BYTES_PER_CENTRE),
+        _ => samples.saturating_mul(pu_bytes_per_sample),
     }
 }
 
@@ -133,72 +128,170 @@ fn mb(bytes: u64) -> String {
     format!("{:.0} MB", bytes as f64 / 1e6)
 }
 
-/// Refuses up front when the estimate exceeds `budget_bytes`, naming the parts and what would fit.
-pub fn check_extract_budget(
-    sequence: &TrackedSequence,
-    calibration: Option<&Calibration>,
+/// Up-front check of the RBF route, before segmenting: what is resident plus the segmentation's
+/// buffers over every pixel (a lower bound of the run; [`check_extract_budget_after_segmentation`]
+/// knows the kept pixels).
+pub fn check_extract_budget(sequence: &TrackedSequence, budget_bytes: u64) -> Result<()> {
+    let pixels = (sequence.width as u64)
+        .saturating_mul(sequence.height as u64)
+        .saturating_mul(sequence.frames.len() as u64);
+    let resident = resident_bytes();
+    let segment = pixels.saturating_mul(SEGMENT_BYTES_PER_PIXEL);
+    let need = resident.saturating_add(segment);
+    check_need(need, budget_bytes, || {
+        format!(
+            "extract would need at least {} before fitting ({} resident with the decoded frames, {} to \
+            segment {pixels} pixels) but the memory budget is {}: split the sequence (fewer frames) or \
+            raise --memory-budget",
+            mb(need),
+            mb(resident),
+            mb(segment),
+            mb(budget_bytes)
+        )
+    })
+}
+
+/// What the segmentation kept, for [`check_extract_budget_after_segmentation`].
+#[derive(Debug, Clone, Copy)]
+pub struct SegmentedCounts {
+    /// Pixels of all frames.
+    pub frame_pixels: u64,
+    pub kept_pixels: u64,
+    /// Pixels per sample block along the image's two axes.
+    pub bin_px: [usize; 2],
+    /// A bone sweep is sampled from a contrast-normalised copy of the frames.
+    pub bone_sweep: bool,
+}
+
+/// Estimates the RBF route's peak once the bands are segmented: the samples from the kept pixels (one
+/// per bin), the fit of at most `--max-samples` of them with the solver `rbf::fit` will choose.
+pub fn estimate_extract_memory(
+    counts: SegmentedCounts,
+    options: &ExtractOptions,
+) -> ExtractMemoryEstimate {
+    let bin_area = (counts.bin_px[0].max(1) as u64).saturating_mul(counts.bin_px[1].max(1) as u64);
+    let binned = counts.kept_pixels.div_ceil(bin_area);
+    let fitted = binned.min(options.max_samples as u64);
+    let thinning = if binned > fitted {
+        binned.saturating_mul(DECIMATE_BYTES_PER_SAMPLE)
+    } else {
+        0
+    };
+    ExtractMemoryEstimate {
+        resident: resident_bytes(),
+        normalised_frames: if counts.bone_sweep {
+            counts.frame_pixels
+        } else {
+            0
+        },
+        samples: binned.saturating_mul(SAMPLE_BYTES).saturating_add(thinning),
+        fit: fit_bytes(fitted, &options.fit),
+    }
+}
+
+/// Second check of the RBF route, after segmenting and before the samples are collected: refuses
+/// when the estimate exceeds `budget_bytes`, naming the parts and a `--max-samples` that would fit.
+pub fn check_extract_budget_after_segmentation(
+    counts: SegmentedCounts,
     options: &ExtractOptions,
     budget_bytes: u64,
 ) -> Result<()> {
-    let e = estimate_extract_memory(sequence, calibration, options);
-    if e.total() <= budget_bytes {
-        return Ok(());
-    }
-    let fixed = e
-        .sequence
-        .saturating_add(e.segment)
-        .saturating_add(e.samples);
-    let mut advice = Vec::new();
-    if fixed >= budget_bytes {
-        advice.push(
-            "the sequence itself is too large for this budget: split it (fewer frames) or raise --memory-budget"
-                .to_string(),
-        );
-    } else {
-        let room = budget_bytes - fixed;
-        if e.fit > room / 2 {
-            // Largest sample count whose fit takes at most half of what is left.
-            let mut lo = 0u64;
-            let mut hi = options.max_samples as u64;
+    let e = estimate_extract_memory(counts, options);
+    check_need(e.total(), budget_bytes, || {
+        let fixed = e
+            .resident
+            .saturating_add(e.normalised_frames)
+            .saturating_add(e.samples);
+        let advice = if fixed >= budget_bytes {
+            "the frames and their kept pixels alone take that: a narrower band, fewer frames or a \
+            larger --memory-budget"
+                .to_string()
+        } else {
+            // Largest sample count whose fit fits in what is left.
+            let room = budget_bytes - fixed;
+            let (mut lo, mut hi) = (0u64, options.max_samples as u64);
             while lo < hi {
                 let mid = (lo + hi).div_ceil(2);
-                if fit_bytes(mid, options) <= room / 2 {
+                if fit_bytes(mid, &options.fit) <= room {
                     lo = mid;
                 } else {
                     hi = mid - 1;
                 }
             }
-            advice.push(format!("--max-samples {lo} or fewer"));
-        }
-        if e.lattice > room / 2 {
-            let scale = (e.lattice as f64 / (room / 2).max(1) as f64).cbrt();
-            let coarser = options.surface.resolution_mm * scale * 1.05;
-            advice.push(format!("--resolution {coarser:.2} (mm) or coarser"));
-        }
-        if advice.is_empty() {
-            advice.push("fewer samples (--max-samples) and a coarser --resolution".into());
-        }
-    }
-    Err(Error::ResourceLimit(format!(
-        "extract would need about {} (pixels {}, segmentation {}, samples {}, fit {}, surface lattice {}) \
-         but the memory budget is {}; would fit: {}",
-        mb(e.total()),
-        mb(e.sequence),
-        mb(e.segment),
-        mb(e.samples),
-        mb(e.fit),
-        mb(e.lattice),
-        mb(budget_bytes),
-        advice.join("; ")
-    )))
+            format!("--max-samples {lo} or fewer would fit, or raise --memory-budget")
+        };
+        format!(
+            "extract would need about {} ({} resident with the frames and bands, normalised frames {}, \
+            samples of {} kept pixels {}, fit {}; the surface is checked after the fit) but the memory \
+             budget is {}: {advice}",
+            mb(e.total()),
+            mb(e.resident),
+            mb(e.normalised_frames),
+            counts.kept_pixels,
+            mb(e.samples),
+            mb(e.fit),
+            mb(budget_bytes),
+        )
+    })
+}
+
+/// Refuses a `fit` of `points` points (already read) past `budget_bytes`.
+pub fn check_fit_budget(
+    points: u64,
+    options: &crate::rbf::FitOptions,
+    budget_bytes: u64,
+) -> Result<()> {
+    let resident = resident_bytes();
+    let fit = fit_bytes_with(points, options, PU_FIT_FRESH_BYTES_PER_SAMPLE);
+    let need = resident.saturating_add(fit);
+    check_need(need, budget_bytes, || {
+        format!(
+            "fitting {points} points would need about {} ({} resident, fit {}) but the memory budget \
+            is {}: fewer points (--max-centres, or thin the cloud), another --solver, or raise \
+            --memory-budget",
+            mb(need),
+            mb(resident),
+            mb(fit),
+            mb(budget_bytes)
+        )
+    })
+}
+
+/// Refuses surfacing from `seeds` seed points (the points near a level the surface is followed
+/// from; `extract` and `surface` take at most `pipeline::MAX_SURFACE_SEEDS`) at `resolution_mm` past
+/// `budget_bytes`. The fitted model is resident when this runs.
+pub fn check_surface_budget(seeds: u64, resolution_mm: f64, budget_bytes: u64) -> Result<()> {
+    let resident = resident_bytes();
+    let surface = surface_bytes(seeds, resolution_mm);
+    let need = resident.saturating_add(surface);
+    check_need(need, budget_bytes, || {
+        format!(
+            "surfacing from {seeds} seed points at {resolution_mm} mm would need about {} ({} \
+             resident with the fitted model, surface {}) but the memory budget is {}: a coarser \
+             --resolution, or raise --memory-budget",
+            mb(need),
+            mb(resident),
+            mb(surface),
+            mb(budget_bytes)
+        )
+    })
+}
+
+/// Bytes of the surface followed from `seeds` seed points on a `resolution_mm` lattice.
+fn surface_bytes(seeds: u64, resolution_mm: f64) -> u64 {
+    // Finer lattices follow more nodes over the same surface (area / resolution^2); 0.5 mm is the
+    // default the per-seed figure was measured at.
+    let scale = (0.5 / resolution_mm).powi(2).clamp(1e-6, 1e12);
+    (seeds as f64 * SURFACE_BYTES_PER_SEED as f64 * scale).min(u64::MAX as f64) as u64
 }
 
 /// Per area sample of `compare`: the point (3 x f64), its distance (f64) and the parallel collection's
 /// chunk buffers.
 const COMPARE_BYTES_PER_SAMPLE: u64 = 48;
-/// Per triangle of either mesh in `compare`: the mesh, its bounding-volume hierarchy, the edge maps of
-/// the topology and the vertex distances (fitted to measured peaks: docs/decisions/0028-memory-budget-estimates.md).
-const COMPARE_BYTES_PER_TRIANGLE: u64 = 350;
+/// Per triangle of either (already read) mesh in `compare`: its bounding-volume hierarchy, the edge
+/// maps of the topology and the vertex distances (fitted to measured peaks:
+/// docs/decisions/0028-memory-budget-estimates.md).
+const COMPARE_BYTES_PER_TRIANGLE: u64 = 300;
 
 /// Area samples `compare` places on a surface of `area_mm2` (as `metrics::compare_meshes` counts them).
 pub fn compare_sample_count(area_mm2: f64, options: &crate::metrics::CompareOptions) -> u64 {
@@ -223,20 +316,22 @@ pub fn check_compare_budget(
         .saturating_mul(COMPARE_BYTES_PER_SAMPLE);
     let meshes = ((mesh.triangles.len() + truth.triangles.len()) as u64)
         .saturating_mul(COMPARE_BYTES_PER_TRIANGLE);
-    let need = samples.saturating_add(meshes);
-    if need <= budget_bytes {
-        return Ok(());
-    }
-    Err(Error::ResourceLimit(format!(
-        "compare would place {mesh_samples} + {truth_samples} area samples at {} per mm^2 and \
-         need about {} (samples {}, meshes {}) but the memory budget is {}: lower \
-         --samples-per-mm2 or --max-samples, or raise --memory-budget",
-        options.samples_per_mm2,
-        mb(need),
-        mb(samples),
-        mb(meshes),
-        mb(budget_bytes)
-    )))
+    let resident = resident_bytes();
+    let need = resident.saturating_add(samples).saturating_add(meshes);
+    check_need(need, budget_bytes, || {
+        format!(
+            "compare would place {mesh_samples} + {truth_samples} area samples at {} per mm^2 and \
+             need about {} ({} resident with the meshes, samples {}, mesh search structures {}) but \
+             the memory budget is {}: lower --samples-per-mm2 or --max-samples, or raise \
+             --memory-budget",
+            options.samples_per_mm2,
+            mb(need),
+            mb(resident),
+            mb(samples),
+            mb(meshes),
+            mb(budget_bytes)
+        )
+    })
 }
 
 #[cfg(test)]
@@ -259,29 +354,65 @@ mod tests {
     }
 
     #[test]
+    fn the_largest_estimate_is_kept() {
+        record_estimate(5);
+        record_estimate(3);
+        assert!(largest_estimate_bytes().unwrap() >= 5);
+    }
+
+    #[test]
+    fn an_estimate_past_the_budget_is_refused_with_the_message() {
+        assert!(check_need(10, 10, || unreachable!()).is_ok());
+        let e = check_need(11, 10, || "over".into()).unwrap_err();
+        assert!(matches!(e, Error::ResourceLimit(m) if m == "over"));
+    }
+
+    #[test]
+    fn kept_pixels_are_counted_once_per_bin() {
+        let options = ExtractOptions::default();
+        let counts = SegmentedCounts {
+            frame_pixels: 400,
+            kept_pixels: 400,
+            bin_px: [2, 2],
+            bone_sweep: false,
+        };
+        let e = estimate_extract_memory(counts, &options);
+        assert_eq!(e.samples, 100 * SAMPLE_BYTES);
+        assert_eq!(e.fit, fit_bytes(100, &options.fit));
+        assert_eq!(e.normalised_frames, 0);
+        let bone = estimate_extract_memory(
+            SegmentedCounts {
+                bone_sweep: true,
+                ..counts
+            },
+            &options,
+        );
+        assert_eq!(bone.normalised_frames, 400);
+    }
+
+    #[test]
     fn default_budget_is_positive_and_below_total_memory() {
         let b = default_memory_budget_bytes();
         assert!(b >= 64 << 20, "{b}");
     }
 
     #[test]
-    fn lattice_nodes_counts_both_ends() {
-        assert_eq!(
-            lattice_nodes(DVec3::new(10.0, 10.0, 10.0), 1.0),
-            11 * 11 * 11
-        );
-        assert_eq!(
-            lattice_nodes(DVec3::new(1e300, 1e300, 1e300), 1e-300),
-            u64::MAX
-        );
-    }
-
-    #[test]
     fn direct_fit_is_quadratic_fast_is_linear() {
-        let mut o = ExtractOptions::default();
-        o.fit.solver = SolverChoice::Direct;
-        assert_eq!(fit_bytes(996, &o), 1000 * 1000 * 8);
-        o.fit.solver = SolverChoice::Fast;
+        let mut o = crate::rbf::FitOptions {
+            solver: SolverChoice::Direct,
+            ..Default::default()
+        };
+        assert_eq!(fit_bytes(996, &o), 1000 * 1000 * 16);
+        o.solver = SolverChoice::Fast;
         assert_eq!(fit_bytes(1000, &o), 1000 * FAST_FIT_BYTES_PER_CENTRE);
+        o.solver = SolverChoice::Auto;
+        assert_eq!(fit_bytes(o.direct_max_points as u64, &o), {
+            let n = o.direct_max_points as u64 + 4;
+            n * n * 16
+        });
+        assert_eq!(
+            fit_bytes(1_000_000, &o),
+            1_000_000 * PU_FIT_BYTES_PER_SAMPLE
+        );
     }
 }

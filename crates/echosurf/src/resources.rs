@@ -4,13 +4,39 @@
 //! a process reset that mark (`echo 5 > /proc/self/clear_refs`), which gives a true per-stage peak; where
 //! that is unavailable the lifetime peak is reported instead and flagged as such.
 
+use std::cell::Cell;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
+
+/// The highest `VmHWM` seen before any [`reset_peak_rss`] (bytes), so the lifetime peak survives the
+/// per-stage resets.
+static PEAK_BEFORE_RESETS_BYTES: AtomicU64 = AtomicU64::new(0);
+
+thread_local! {
+    /// How many [`fallibly`] calls this thread is inside.
+    static FALLIBLE_DEPTH: Cell<u32> = const { Cell::new(0) };
+}
+
+/// Runs `reserve` (a `try_reserve` whose failure the caller turns into an error) telling a process's
+/// global allocator that a failed allocation here is handled: it should return null rather than end
+/// the process (the CLI's allocator ends it cleanly on any other failure).
+pub fn fallibly<T>(reserve: impl FnOnce() -> T) -> T {
+    FALLIBLE_DEPTH.with(|d| d.set(d.get() + 1));
+    let out = reserve();
+    FALLIBLE_DEPTH.with(|d| d.set(d.get() - 1));
+    out
+}
+
+/// True inside [`fallibly`] on this thread (for a global allocator's failure path).
+pub fn allocation_is_fallible() -> bool {
+    FALLIBLE_DEPTH.try_with(|d| d.get() > 0).unwrap_or(false)
+}
 
 /// A zeroed buffer of `n` elements, or a [`crate::Error::ResourceLimit`] naming `what` when the
 /// allocation fails (instead of the abort a plain `vec!` gives under `ulimit -v` or overcommit limits).
 pub fn try_zeroed_vec<T: Clone + Default>(n: usize, what: &str) -> crate::Result<Vec<T>> {
     let mut v = Vec::new();
-    v.try_reserve_exact(n).map_err(|_| {
+    crate::resources::fallibly(|| v.try_reserve_exact(n)).map_err(|_| {
         crate::Error::ResourceLimit(format!(
             "{what}: could not allocate {n} x {} bytes",
             std::mem::size_of::<T>()
@@ -41,9 +67,23 @@ fn read_status_kib(key: &str) -> Option<u64> {
         .ok()
 }
 
-/// Resets the high-water mark to the current RSS; false where the platform does not allow it.
+/// Resets the high-water mark to the current RSS; false where the platform does not allow it. The
+/// mark before the reset is kept for [`lifetime_peak_rss_bytes`].
 pub fn reset_peak_rss() -> bool {
+    if let Some(peak) = peak_rss_bytes() {
+        PEAK_BEFORE_RESETS_BYTES.fetch_max(peak, Ordering::Relaxed);
+    }
     std::fs::write("/proc/self/clear_refs", b"5").is_ok()
+}
+
+/// Resident-set high-water mark over the whole process so far (bytes), per-stage resets included; a
+/// reset lowers `VmHWM` and with it what `getrusage` and `/usr/bin/time` report.
+pub fn lifetime_peak_rss_bytes() -> Option<u64> {
+    let before = PEAK_BEFORE_RESETS_BYTES.load(Ordering::Relaxed);
+    match peak_rss_bytes() {
+        Some(now) => Some(now.max(before)),
+        None => (before > 0).then_some(before),
+    }
 }
 
 /// Wall time and peak memory of one stage.
@@ -97,6 +137,16 @@ mod tests {
     use super::*;
 
     #[test]
+    fn fallibly_marks_only_its_own_call() {
+        assert!(!allocation_is_fallible());
+        assert!(fallibly(allocation_is_fallible));
+        assert!(fallibly(
+            || fallibly(allocation_is_fallible) && allocation_is_fallible()
+        ));
+        assert!(!allocation_is_fallible());
+    }
+
+    #[test]
     fn stage_meter_records_every_stage_in_order() {
         let mut meter = StageMeter::new();
         let v = meter.stage("alloc", || {
@@ -107,6 +157,12 @@ mod tests {
         meter.stage("idle", || ());
         assert_eq!(meter.stages.len(), 2);
         assert_eq!(meter.stages[0].stage, "alloc");
+        if let Some(lifetime) = lifetime_peak_rss_bytes() {
+            assert!(
+                lifetime >= meter.peak_rss_bytes().unwrap_or(0),
+                "{lifetime}"
+            );
+        }
         if let (Some(alloc_peak), true) = (
             meter.stages[0].peak_rss_bytes,
             meter.stages[0].peak_is_per_stage,

@@ -234,6 +234,16 @@ fn parse_method(args: &Args) -> anyhow::Result<Method> {
     }
 }
 
+/// Adds to a voxel grid's memory refusal which options set its spacing and the budget.
+pub fn name_voxel_options(error: echosurf::Error, spacing_option: &str) -> anyhow::Error {
+    match error {
+        echosurf::Error::ResourceLimit(message) => anyhow::anyhow!(
+            "{message} ({spacing_option} sets the spacing, --memory-budget the budget)"
+        ),
+        other => other.into(),
+    }
+}
+
 /// `--memory-budget MB`, or the machine default.
 pub fn memory_budget_bytes(mb: Option<f64>) -> anyhow::Result<u64> {
     match mb {
@@ -431,7 +441,15 @@ pub fn run_with(
         },
         memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
     };
+    let voxel = matches!(options.method, Method::Voxel(_));
     let output = pipeline::extract(&sequence, Some(&calibration), &options, progress)
+        .map_err(|e| {
+            if voxel {
+                name_voxel_options(e, "--voxel-spacing")
+            } else {
+                e.into()
+            }
+        })
         .with_context(|| format!("extracting a surface from {}", seg.sequence.display()))?;
     write_outputs(&args, &output)?;
     print_summary(&args, &output)?;

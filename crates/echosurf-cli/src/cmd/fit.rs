@@ -36,6 +36,10 @@ pub struct Args {
     /// Print the fit report as JSON on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Refuse before fitting when the fit would need more than this many MB (default: half the
+    /// machine's memory).
+    #[arg(long)]
+    pub memory_budget: Option<f64>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -60,6 +64,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         solver: parse_solver(&args.solver)?,
         ..FitOptions::default()
     };
+    let budget = super::extract::memory_budget_bytes(args.memory_budget)?;
+    echosurf::budget::check_fit_budget(values.len() as u64, &options, budget)
+        .with_context(|| format!("fitting {}", args.points.display()))?;
     let progress = crate::progress::BarProgress::new();
     let (model, report) = fit(&cloud.positions, &values, &options, &progress)
         .with_context(|| format!("fitting {}", args.points.display()))?;

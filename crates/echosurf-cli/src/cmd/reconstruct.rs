@@ -135,6 +135,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let progress = BarProgress::new();
     let recon_started = Instant::now();
     let volume = reconstruct_volume(&sequence, &poses, &options, &progress)
+        .map_err(|e| super::extract::name_voxel_options(e, "--spacing"))
         .with_context(|| format!("reconstructing {}", args.sequence.display()))?;
     let recon_s = recon_started.elapsed().as_secs_f64();
     write_volume_mha(&args.out, &volume, !args.uncompressed)?;

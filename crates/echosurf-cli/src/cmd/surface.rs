@@ -31,6 +31,10 @@ pub struct Args {
     /// Region of trust: no surface farther than this (mm) from any centre of the model.
     #[arg(long, default_value_t = 3.0)]
     pub trust_distance: f64,
+    /// Refuse before surfacing when it would need more than this many MB (default: half the
+    /// machine's memory).
+    #[arg(long)]
+    pub memory_budget: Option<f64>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -78,6 +82,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         0.1 * (hi - lo),
         args.trust_distance,
     );
+    let budget = super::extract::memory_budget_bytes(args.memory_budget)?;
+    echosurf::budget::check_surface_budget(domain.seeds.len() as u64, args.resolution, budget)
+        .with_context(|| format!("surfacing {}", args.model.display()))?;
     let options = SurfaceOptions {
         resolution_mm: args.resolution,
         trust_distance_mm: args.trust_distance,

@@ -178,6 +178,28 @@ pub fn remove_in_flight_temp_files() -> usize {
     n
 }
 
+/// [`remove_in_flight_temp_files`] for a process ending from inside its allocator: waits at most about
+/// a second for the registry, which the failing thread itself may hold, and then gives up (`None`).
+pub fn try_remove_in_flight_temp_files() -> Option<usize> {
+    for _ in 0..100 {
+        let registry = match IN_FLIGHT.try_lock() {
+            Ok(guard) => guard,
+            Err(std::sync::TryLockError::Poisoned(poisoned)) => poisoned.into_inner(),
+            Err(std::sync::TryLockError::WouldBlock) => {
+                std::thread::sleep(std::time::Duration::from_millis(10));
+                continue;
+            }
+        };
+        for tmp in registry.iter() {
+            let _ = std::fs::remove_file(tmp);
+        }
+        let n = registry.len();
+        std::mem::forget(registry);
+        return Some(n);
+    }
+    None
+}
+
 /// Removes `.NAME.echosurf-tmp-PID` files in `dir` left by echosurf processes that no longer run (killed
 /// with SIGKILL mid-write). Liveness is read from `/proc/PID`; where `/proc` is absent nothing is removed.
 /// Returns how many files were removed.

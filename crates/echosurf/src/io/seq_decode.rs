@@ -196,7 +196,7 @@ fn inflate_exact<D: Read>(decoder: D, expected: u64, path: &Path) -> Result<Vec<
         .unwrap_or(usize::MAX)
         .min(MAX_UPFRONT_BYTES);
     let mut buf = Vec::new();
-    buf.try_reserve_exact(upfront).map_err(|_| {
+    crate::resources::fallibly(|| buf.try_reserve_exact(upfront)).map_err(|_| {
         Error::ResourceLimit(format!(
             "{}: could not allocate {upfront} bytes for the pixel data",
             path.display()

@@ -541,6 +541,19 @@ pub fn prepare_samples(
         .map(|c| c.pixel_size_mm())
         .unwrap_or([f64::NAN, f64::NAN]);
     let bin_px = sample_bin_px(options.sample_bin_mm, pixel_size_mm);
+    if let Some(budget) = options.memory_budget_bytes {
+        let counts = crate::budget::SegmentedCounts {
+            frame_pixels: (poses.poses.len() * sequence.width * sequence.height) as u64,
+            kept_pixels: poses
+                .poses
+                .iter()
+                .map(|p| masks.kept_count(p.frame_index) as u64)
+                .sum(),
+            bin_px,
+            bone_sweep: masks.bone_sweep,
+        };
+        crate::budget::check_extract_budget_after_segmentation(counts, options, budget)?;
+    }
     // A bone band is fitted against each echo's own contrast (see `segment::bone`).
     let normalised = masks.bone_sweep.then(|| {
         let px = masks.parameters.pixel_size_mm.unwrap_or(1.0);
@@ -773,7 +786,7 @@ pub fn extract(
         return voxel_route::extract_voxel(sequence, calibration, options, route, progress);
     }
     if let Some(budget) = options.memory_budget_bytes {
-        crate::budget::check_extract_budget(sequence, calibration, options, budget)?;
+        crate::budget::check_extract_budget(sequence, budget)?;
     }
     let mut meter = StageMeter::new();
     let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
@@ -819,6 +832,13 @@ pub fn extract(
         trust_distance_mm,
         ..options.surface.clone()
     };
+    if let Some(budget) = options.memory_budget_bytes {
+        crate::budget::check_surface_budget(
+            domain.seeds.len() as u64,
+            surface_options.resolution_mm,
+            budget,
+        )?;
+    }
     let (mut meshes, surface_stats) = meter.stage("surface", || {
         extract_surfaces_with_stats(&model, &levels, &domain, &surface_options)
     })?;

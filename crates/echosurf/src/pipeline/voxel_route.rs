@@ -66,6 +66,13 @@ impl Default for VoxelRouteOptions {
     }
 }
 
+/// Buffers per voxel the route adds to the reconstructed volume: the grey levels as f32 (4) and the
+/// data mask (1); smoothing holds the weighted values, the weights, the new mask and the result
+/// (4 + 4 + 1 + 4) at once; without it, the surface field (4) is the last.
+fn route_bytes_per_voxel(smoothing_sigma_mm: f64) -> u64 {
+    if smoothing_sigma_mm > 0.0 { 18 } else { 9 }
+}
+
 /// What the voxel route did, for the report.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct VoxelRouteReport {
@@ -141,6 +148,7 @@ pub(super) fn extract_voxel(
     if let Some(b) = route.memory_budget_bytes {
         voxel_options.memory_budget_bytes = b;
     }
+    voxel_options.extra_bytes_per_voxel = route_bytes_per_voxel(route.smoothing_sigma_mm);
     let volume = meter.stage("reconstruct", || {
         reconstruct_volume(sequence, &poses, &voxel_options, progress)
     })?;

@@ -239,6 +239,9 @@ pub struct VoxelOptions {
     pub skip_interval: usize,
     /// Refuse (with the spacing that would fit) when the grid and its buffers need more.
     pub memory_budget_bytes: u64,
+    /// Buffers per voxel the caller allocates after the reconstruction (the voxel route's smoothing
+    /// and surface field), counted in the budget; 0 for the volume alone.
+    pub extra_bytes_per_voxel: u64,
     /// Settings read from a configuration that this implementation does not apply (fan clipping,
     /// importance masks, ...), for the caller to report.
     pub ignored_settings: Vec<String>,
@@ -259,6 +262,7 @@ impl Default for VoxelOptions {
             pixel_rejection_threshold: None,
             skip_interval: 1,
             memory_budget_bytes: DEFAULT_MEMORY_BUDGET_BYTES,
+            extra_bytes_per_voxel: 0,
             ignored_settings: Vec::new(),
         }
     }
@@ -449,7 +453,8 @@ pub fn estimated_memory_bytes(
     options: &VoxelOptions,
 ) -> u128 {
     geometry.voxel_count()
-        * bytes_per_voxel(element_type, options.hole_filling.is_enabled()) as u128
+        * (bytes_per_voxel(element_type, options.hole_filling.is_enabled()) as u128
+            + options.extra_bytes_per_voxel as u128)
 }
 
 /// World (min, max) corners of the clipped frames, as PLUS's `AddImageToExtent` takes them.
@@ -563,11 +568,15 @@ fn check_memory_budget(
     geometry: &GridGeometry,
     element_type: ElementType,
 ) -> Result<()> {
-    // Plus one frame's working set: grey levels (f32) and up to two copies of its pixel entries
-    // (32 bytes each when trilinear), and the decoded sequence, which is in memory throughout.
-    let frame_bytes = (sequence.width * sequence.height) as u128 * (4 + 2 * 32)
-        + sequence.pixels.len() as u128 * sequence.pixels.element_type().size_bytes() as u128;
+    // Plus one frame's splatting buffers and what is resident already (the decoded sequence, the
+    // process), or the decoded sequence where the resident size is not reported.
+    let resident = match crate::budget::resident_bytes() {
+        0 => sequence.pixels.len() as u128 * sequence.pixels.element_type().size_bytes() as u128,
+        r => r as u128,
+    };
+    let frame_bytes = paste::frame_working_bytes(sequence, options) + resident;
     let need = estimated_memory_bytes(geometry, element_type, options) + frame_bytes;
+    crate::budget::record_estimate(need.min(u64::MAX as u128) as u64);
     let budget = options.memory_budget_bytes as u128;
     // Flat voxel indices are u32 in the splatting buffers.
     let too_many = geometry.voxel_count() >= u32::MAX as u128;
@@ -612,7 +621,7 @@ fn check_memory_budget(
         format_bytes(budget),
         if frame_bytes >= budget {
             format!(
-                " (the decoded frames alone take {}: raise the memory budget)",
+                " (the decoded frames and the process alone take {}: raise the memory budget)",
                 format_bytes(frame_bytes)
             )
         } else {

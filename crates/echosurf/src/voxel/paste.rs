@@ -71,7 +71,7 @@ pub(super) fn c_cast(x: f64, integer: bool) -> f64 {
 /// Allocates a zeroed buffer, turning allocation failure into an error instead of an abort.
 pub(super) fn try_zeroed<T: Clone + Default>(n: usize, what: &str) -> Result<Vec<T>> {
     let mut v = Vec::new();
-    v.try_reserve_exact(n).map_err(|_| {
+    crate::resources::fallibly(|| v.try_reserve_exact(n)).map_err(|_| {
         Error::ResourceLimit(format!(
             "could not allocate the {what} ({n} voxels); use a coarser spacing"
         ))
@@ -82,7 +82,11 @@ pub(super) fn try_zeroed<T: Clone + Default>(n: usize, what: &str) -> Result<Vec
 
 /// Inclusive pixel ranges [x0, x1], [y0, y1] inserted, or None when the clip leaves nothing.
 /// PLUS includes the far edge `origin + size` when it lies inside the image.
-fn clip_ranges(width: usize, height: usize, options: &VoxelOptions) -> Option<[usize; 4]> {
+pub(super) fn clip_ranges(
+    width: usize,
+    height: usize,
+    options: &VoxelOptions,
+) -> Option<[usize; 4]> {
     if width == 0 || height == 0 {
         return None;
     }
@@ -97,6 +101,20 @@ fn clip_ranges(width: usize, height: usize, options: &VoxelOptions) -> Option<[u
         y1 = y1.min(c.origin_px[1].saturating_add(c.size_px[1]));
     }
     (x0 <= x1 && y0 <= y1).then_some([x0, x1, y0, y1])
+}
+
+/// Bytes one frame's splatting holds at once: its grey levels (f32 per pixel) and its clipped pixels'
+/// entries twice (per row, then per slab).
+pub(super) fn frame_working_bytes(sequence: &TrackedSequence, options: &VoxelOptions) -> u128 {
+    let grey = (sequence.width * sequence.height) as u128 * 4;
+    let Some([x0, x1, y0, y1]) = clip_ranges(sequence.width, sequence.height, options) else {
+        return grey;
+    };
+    let entry = match options.interpolation {
+        Interpolation::NearestNeighbor => std::mem::size_of::<NnEntry>(),
+        Interpolation::Linear => std::mem::size_of::<LinearEntry>(),
+    } as u128;
+    grey + ((x1 - x0 + 1) * (y1 - y0 + 1)) as u128 * 2 * entry
 }
 
 /// Grey level per pixel of a frame; multi-channel pixels are averaged (rounded for integer data).
