@@ -29,7 +29,10 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 
-pub use bench_data::{ScalingRow, bench_fit_scaling, ultrasound_like_samples};
+pub use bench_data::{
+    BAND_DILATION_PX, BAND_SMOOTHING_SIGMA_PX, BAND_THRESHOLD_GREY, ScalingRow, band_pixels,
+    bench_fit_scaling, simulated_band_pixels, ultrasound_like_samples,
+};
 pub use fast::FastBreakdown;
 pub use merge::merge_near_duplicates;
 pub use model::RbfModel;
@@ -176,6 +179,25 @@ pub fn fit(
     } else {
         let sub = solve_subset(&pts, &vals, options, None, progress)?;
         absorb(&mut report, &sub);
+        if sub.solver != SolverChoice::PartitionOfUnity {
+            // Measured afresh from the final model (its own evaluator), not the solver's vectors.
+            let (max_r, rms_r) = global_system_residual(&sub.model, &pts, &vals, options.smoothing);
+            report.max_residual = max_r;
+            report.rms_residual = rms_r;
+        }
+        if !(report.max_residual <= options.accuracy) {
+            return Err(Error::Numerical(format!(
+                "RBF fit ({:?} solver, {} samples, smoothing {} mm): the largest system residual \
+                 |f_i - s(x_i) + w l_i| of the fitted model is {:.4} grey levels, above the \
+                 requested accuracy {}; {}",
+                sub.solver,
+                pts.len(),
+                options.smoothing,
+                report.max_residual,
+                options.accuracy,
+                accuracy_advice(sub.solver)
+            )));
+        }
         sub.model
     };
     report.centres = model.coefficients().len();
@@ -185,6 +207,35 @@ pub fn fit(
     }
     report.fit_seconds = start.elapsed().as_secs_f64();
     Ok((model, report))
+}
+
+/// What to change when a solver misses the accuracy.
+fn accuracy_advice(solver: SolverChoice) -> &'static str {
+    match solver {
+        SolverChoice::PartitionOfUnity => {
+            "raise --accuracy or --smoothing, or use --solver fast (the global spline)"
+        }
+        SolverChoice::Fast => {
+            "raise --accuracy or --smoothing (the model's evaluation error is part of the figure)"
+        }
+        _ => "raise --smoothing (near-coincident samples with different values) or --accuracy",
+    }
+}
+
+/// `max` and rms over the samples of `|f_i - s(x_i) + w l_i|` for a global model whose centres are
+/// `pts`, with `s` the model's own evaluation.
+fn global_system_residual(model: &RbfModel, pts: &[DVec3], vals: &[f64], w: f64) -> (f64, f64) {
+    let fitted = model.values(pts);
+    let (mut max_r, mut sum_sq) = (0.0f64, 0.0);
+    for ((s, f), l) in fitted.iter().zip(vals).zip(model.coefficients()) {
+        let e = f - s + w * l;
+        max_r = max_r.max(e.abs());
+        sum_sq += e * e;
+    }
+    if !max_r.is_finite() {
+        max_r = f64::INFINITY;
+    }
+    (max_r, (sum_sq / pts.len() as f64).sqrt())
 }
 
 fn validate(points: &[DVec3], values: &[f64], options: &FitOptions) -> Result<()> {
@@ -303,7 +354,9 @@ fn solve_subset(
                 .collect();
             (vec![0.0; n], d, 0, 0.0, 0.0, 0)
         } else if solver == SolverChoice::Direct {
-            progress.start("fit: dense solve", 1);
+            check_dense_memory(n + basis.rank())?;
+            // One LU, no intermediate progress to report: a spinner.
+            progress.start("fit: dense solve", 0);
             let (l, d) = direct::solve_dense(pts, vals, options.smoothing, &basis)?;
             progress.finish();
             let (max_r, rms_r) = dense_residual(pts, vals, &l, &d, &basis, options.smoothing);
@@ -353,43 +406,62 @@ fn solve_subset(
     })
 }
 
+/// Bytes the dense solve holds: the saddle matrix and faer's LU copy of it, `2 (n + r)^2` f64.
+pub fn dense_solve_bytes(size: usize) -> u128 {
+    2 * (size as u128) * (size as u128) * 8
+}
+
+/// Refuses a dense solve that would not fit the memory budget (half the machine's memory).
+fn check_dense_memory(size: usize) -> Result<()> {
+    let needed = dense_solve_bytes(size);
+    let budget = crate::budget::default_memory_budget_bytes();
+    if needed > u128::from(budget) {
+        return Err(Error::ResourceLimit(format!(
+            "dense RBF solve of {size} unknowns needs {:.1} GB (two {size} x {size} f64 matrices), \
+             more than the {:.1} GB memory budget (half the machine's memory); use --solver pu or \
+             --solver fast, or fewer samples",
+            needed as f64 / 1e9,
+            budget as f64 / 1e9
+        )));
+    }
+    Ok(())
+}
+
 fn solve_partition_of_unity(
     pts: &[DVec3],
     vals: &[f64],
     options: &FitOptions,
     progress: &dyn Progress,
 ) -> Result<SubsetFit> {
-    progress.start("fit: partition of unity", 1);
     let params = pu::PuParams {
         leaf_points: options.pu_leaf_points,
         overlap: options.pu_overlap,
         min_overlap_mm: options.pu_min_overlap_mm,
     };
-    let (pu_model, stats) =
-        pu::fit_pu(pts, vals, options.smoothing, options.eval_accuracy, params)?;
-    progress.finish();
+    let (pu_model, stats) = pu::fit_pu(
+        pts,
+        vals,
+        options.smoothing,
+        options.eval_accuracy,
+        params,
+        progress,
+    )?;
     let size = stats.max_patch_points + 4;
     let solver_bytes =
         pu_model.memory_bytes() + rayon::current_num_threads() * size * (size + 1) * 8;
     let model = RbfModel::from_partition_of_unity(pu_model);
-    // No global system: report the measured misfit of the blended model at every sample.
-    let fitted = model.values(pts);
-    let (mut max_r, mut sum_sq) = (0.0f64, 0.0);
-    for (s, f) in fitted.iter().zip(vals) {
-        let e = f - s;
-        max_r = max_r.max(e.abs());
-        sum_sq += e * e;
-    }
-    if !max_r.is_finite() {
-        return Err(Error::Numerical(
-            "partition-of-unity fit produced non-finite values".into(),
-        ));
+    if stats.foreign_weighted_samples > 0 {
+        return Err(Error::Numerical(format!(
+            "partition-of-unity fit: {} samples are weighted by patches not fitted to them (a bug in \
+             the partition; use --solver fast)",
+            stats.foreign_weighted_samples
+        )));
     }
     Ok(SubsetFit {
         model,
         iterations: 0,
-        max_residual: max_r,
-        rms_residual: (sum_sq / pts.len() as f64).sqrt(),
+        max_residual: stats.max_residual,
+        rms_residual: stats.rms_residual,
         trend_rank: stats.min_trend_rank,
         solver: SolverChoice::PartitionOfUnity,
         solver_bytes,

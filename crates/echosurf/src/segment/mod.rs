@@ -75,7 +75,7 @@
 //! Felzenszwalb-Huttenlocher) and one lookup per pixel (squared distances are integers, so the Gaussian
 //! is a table); rows run in parallel with rayon and all buffers are reused between frames.
 
-mod filters;
+pub(crate) mod filters;
 mod init;
 mod preview;
 #[doc(hidden)]
