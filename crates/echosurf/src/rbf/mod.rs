@@ -568,6 +568,8 @@ fn greedy_reduction(
 }
 
 #[cfg(test)]
+mod contract_tests;
+#[cfg(test)]
 mod pu_tests;
 #[cfg(test)]
 mod tests;

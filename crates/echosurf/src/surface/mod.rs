@@ -134,9 +134,22 @@ pub struct LevelStats {
     /// Vertices duplicated because trust clipping left two surface pieces touching at them (and they
     /// could not be joined).
     pub split_pinched_vertices: usize,
-    /// Vertices whose Newton iteration did not reach `surface_tolerance_mm` (left at their best position).
+    /// Vertices Newton did not bring within `surface_tolerance_mm` (then put on the level by bisection).
+    pub newton_failed_vertices: usize,
+    /// Largest |s - level| at the best point Newton reached, over those vertices (before bisection).
+    pub newton_failed_max_error: f64,
+    /// Vertices that neither Newton nor the bisection fallback brought within `surface_tolerance_mm`.
     pub unconverged_vertices: usize,
+    /// Output vertices with |s(v) - level| > [`LEVEL_TOLERANCE`] (measured on the final mesh; they
+    /// are flagged here, not hidden).
+    pub off_level_vertices: usize,
+    /// Largest |s(v) - level| over the output vertices (field units: grey levels for a fit).
+    pub max_level_error: f64,
 }
+
+/// Largest |s(v) - level| (field units; grey levels for an RBF fit) an output vertex may have before it
+/// is counted in [`LevelStats::off_level_vertices`].
+pub const LEVEL_TOLERANCE: f64 = 0.5;
 
 /// Work counts of one [`extract_surfaces_with_stats`] call, for cost reports.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
@@ -235,13 +248,19 @@ pub fn extract_surfaces_with_stats(
             triangles: merged.triangles.len(),
             refused_merges: merged.refused_merges,
             unconverged_vertices: 0,
+            newton_failed_vertices: 0,
+            newton_failed_max_error: 0.0,
+            off_level_vertices: 0,
+            max_level_error: 0.0,
             joined_pinched_vertices: 0,
             split_pinched_vertices: 0,
             folded_triangles: 0,
         };
-        let (mut vertices, mut normals, unconverged) =
+        let (mut vertices, mut normals, projection) =
             project_onto_surface(field, level, merged.positions, h, options, &mut counter);
-        level_stats.unconverged_vertices = unconverged;
+        level_stats.unconverged_vertices = projection.unconverged;
+        level_stats.newton_failed_vertices = projection.newton_failed;
+        level_stats.newton_failed_max_error = projection.newton_failed_max_error;
         level_stats.folded_triangles = untangle(
             field,
             level,
@@ -264,6 +283,17 @@ pub fn extract_surfaces_with_stats(
         level_stats.split_pinched_vertices = mesh.split_pinched_vertices();
         level_stats.vertices = mesh.vertices.len();
         level_stats.triangles = mesh.triangles.len();
+        // Independent check of the final vertices (after untangling and pinch repairs).
+        let (final_values, _) = lattice::evaluate_gradients(field, &mesh.vertices, &mut counter);
+        for v in &final_values {
+            let error = (v - level).abs();
+            if !(error <= LEVEL_TOLERANCE) {
+                level_stats.off_level_vertices += 1;
+            }
+            if error.is_finite() {
+                level_stats.max_level_error = level_stats.max_level_error.max(error);
+            }
+        }
         meshes.push(mesh);
         stats.levels.push(level_stats);
     }
@@ -307,8 +337,10 @@ fn validate(levels: &[f64], options: &SurfaceOptions) -> Result<()> {
 
 /// Newton steps along the gradient toward s(x) = level, all pending vertices in one batch per step.
 /// A step is capped at one lattice spacing (the vertex starts within about a cell of the surface, so a
-/// longer step means a poor gradient). Returns positions, unit normals toward lower values (the mesh's
-/// face normals where the gradient vanishes) and the count of vertices that did not converge.
+/// longer step means a poor gradient). On a rough field (an interpolating fit of speckle) Newton can
+/// wander or cycle; such a vertex restarts from the best point Newton visited and is put on the level by
+/// bisection along its gradient line ([`bisect_onto_level`]). Returns positions, unit normals toward
+/// lower values (the mesh's face normals where the gradient vanishes) and what happened.
 fn project_onto_surface(
     field: &dyn ScalarField,
     level: f64,
@@ -316,11 +348,12 @@ fn project_onto_surface(
     spacing_mm: f64,
     options: &SurfaceOptions,
     counter: &mut lattice::EvalCounter,
-) -> (Vec<DVec3>, Vec<DVec3>, usize) {
+) -> (Vec<DVec3>, Vec<DVec3>, Projection) {
     let mut normals = vec![DVec3::ZERO; positions.len()];
+    let mut best: Vec<(f64, DVec3)> = positions.iter().map(|&p| (f64::INFINITY, p)).collect();
     let mut pending: Vec<u32> = (0..positions.len() as u32).collect();
+    let mut failed: Vec<u32> = Vec::new();
     let mut steps = 0;
-    let mut unconverged = 0;
     while !pending.is_empty() {
         let points: Vec<DVec3> = pending.iter().map(|&i| positions[i as usize]).collect();
         let (values, gradients) = lattice::evaluate_gradients(field, &points, counter);
@@ -331,15 +364,18 @@ fn project_onto_surface(
             let g2 = g.length_squared();
             normals[i as usize] = -g;
             if !(s.is_finite() && g2.is_finite() && g2 > 0.0) {
-                unconverged += 1;
+                failed.push(i);
                 continue;
             }
             let residual = s - level;
+            if residual.abs() < best[i as usize].0 {
+                best[i as usize] = (residual.abs(), positions[i as usize]);
+            }
             if residual.abs() <= options.surface_tolerance_mm * g2.sqrt() {
                 continue;
             }
             if last {
-                unconverged += 1;
+                failed.push(i);
                 continue;
             }
             let step = -residual * g / g2;
@@ -357,7 +393,151 @@ fn project_onto_surface(
         }
         steps += 1;
     }
-    (positions, normals, unconverged)
+    let mut outcome = Projection {
+        newton_failed: failed.len(),
+        ..Projection::default()
+    };
+    if !failed.is_empty() {
+        failed.sort_unstable();
+        outcome.newton_failed_max_error = failed
+            .iter()
+            .map(|&i| best[i as usize].0)
+            .fold(0.0, f64::max);
+        let starts: Vec<DVec3> = failed
+            .iter()
+            .map(|&i| {
+                let (r, p) = best[i as usize];
+                if r.is_finite() {
+                    p
+                } else {
+                    positions[i as usize]
+                }
+            })
+            .collect();
+        let (moved, values, gradients) =
+            bisect_onto_level(field, level, &starts, spacing_mm, counter);
+        for (k, &i) in failed.iter().enumerate() {
+            positions[i as usize] = moved[k];
+            normals[i as usize] = -gradients[k];
+            let g = gradients[k].length();
+            if !((values[k] - level).abs() <= options.surface_tolerance_mm * g) {
+                outcome.unconverged += 1;
+            }
+        }
+    }
+    (positions, normals, outcome)
+}
+
+/// What [`project_onto_surface`] did.
+#[derive(Debug, Default, Clone, Copy)]
+struct Projection {
+    newton_failed: usize,
+    newton_failed_max_error: f64,
+    unconverged: usize,
+}
+
+/// Offsets (in lattice spacings) along the gradient line where [`bisect_onto_level`] looks for a sign
+/// change of `s - level`, nearest first.
+const BRACKET_OFFSETS: [f64; 10] = [0.25, -0.25, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5, 2.0, -2.0];
+/// Bisection steps: the bracket (at most 2 spacings) shrinks below 1e-9 spacings.
+const BISECTION_STEPS: usize = 32;
+
+/// For each start point: the nearest sign change of `s - level` along the line through it in the
+/// direction of its gradient (within two lattice spacings), then bisection of that bracket; where no
+/// bracket is found the start point is kept. Returns positions, values and gradients there.
+fn bisect_onto_level(
+    field: &dyn ScalarField,
+    level: f64,
+    starts: &[DVec3],
+    spacing_mm: f64,
+    counter: &mut lattice::EvalCounter,
+) -> (Vec<DVec3>, Vec<f64>, Vec<DVec3>) {
+    let (v0, g0) = lattice::evaluate_gradients(field, starts, counter);
+    let directions: Vec<DVec3> = g0
+        .iter()
+        .map(|g| {
+            let n = g.normalize_or_zero();
+            if n == DVec3::ZERO { DVec3::Z } else { n }
+        })
+        .collect();
+    let probes: Vec<DVec3> = starts
+        .iter()
+        .zip(&directions)
+        .flat_map(|(&p, &d)| BRACKET_OFFSETS.map(|t| p + d * (t * spacing_mm)))
+        .collect();
+    let (pv, _) = lattice::evaluate_gradients(field, &probes, counter);
+    // Bracket (t_a, value_a, t_b, value_b) in spacings along the line, or None.
+    let mut brackets: Vec<Option<(f64, f64, f64, f64)>> = Vec::with_capacity(starts.len());
+    for k in 0..starts.len() {
+        let at = |t: f64| -> f64 {
+            if t == 0.0 {
+                v0[k] - level
+            } else {
+                let j = BRACKET_OFFSETS
+                    .iter()
+                    .position(|&o| o == t)
+                    .expect("offset");
+                pv[k * BRACKET_OFFSETS.len() + j] - level
+            }
+        };
+        let mut found = None;
+        // Consecutive points on each side, nearest pair first.
+        'search: for pair in [
+            (0.0, 0.25),
+            (0.0, -0.25),
+            (0.25, 0.5),
+            (-0.25, -0.5),
+            (0.5, 1.0),
+            (-0.5, -1.0),
+            (1.0, 1.5),
+            (-1.0, -1.5),
+            (1.5, 2.0),
+            (-1.5, -2.0),
+        ] {
+            let (a, b) = (at(pair.0), at(pair.1));
+            if a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0) {
+                found = Some((pair.0, a, pair.1, b));
+                break 'search;
+            }
+        }
+        brackets.push(found);
+    }
+    let active: Vec<usize> = (0..starts.len())
+        .filter(|&k| brackets[k].is_some())
+        .collect();
+    for _ in 0..BISECTION_STEPS {
+        if active.is_empty() {
+            break;
+        }
+        let mids: Vec<DVec3> = active
+            .iter()
+            .map(|&k| {
+                let (ta, _, tb, _) = brackets[k].expect("active");
+                starts[k] + directions[k] * (0.5 * (ta + tb) * spacing_mm)
+            })
+            .collect();
+        let (mv, _) = lattice::evaluate_gradients(field, &mids, counter);
+        for (m, &k) in active.iter().enumerate() {
+            let (ta, va, tb, vb) = brackets[k].expect("active");
+            let (t, v) = (0.5 * (ta + tb), mv[m] - level);
+            brackets[k] = Some(if !v.is_finite() || (v <= 0.0) == (va <= 0.0) {
+                (t, v, tb, vb)
+            } else {
+                (ta, va, t, v)
+            });
+        }
+    }
+    let finals: Vec<DVec3> = (0..starts.len())
+        .map(|k| match brackets[k] {
+            Some((ta, va, tb, vb)) => {
+                let t = if va.abs() <= vb.abs() { ta } else { tb };
+                starts[k] + directions[k] * (t * spacing_mm)
+            }
+            None => starts[k],
+        })
+        .collect();
+    let (values, gradients) = lattice::evaluate_gradients(field, &finals, counter);
+    (finals, values, gradients)
 }
 
 /// Rounds of untangling after projection.
