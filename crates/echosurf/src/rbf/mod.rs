@@ -133,6 +133,11 @@ pub struct FitReport {
     /// over all (merged) samples, which includes the smoothing misfit.
     pub max_residual: f64,
     pub rms_residual: f64,
+    /// Largest and rms data misfit `|f_i - s(x_i)|` of the final model over the (merged) samples, grey
+    /// levels: at w > 0 the smoothing's intended misfit; far above the speckle it says the samples
+    /// contradict each other (frames placed wrongly, e.g. a calibration of another probe).
+    pub max_data_misfit: f64,
+    pub rms_data_misfit: f64,
     /// Number of linear-trend directions kept (4 normally; 3 for coplanar samples, ...); for partition of
     /// unity the smallest over the local fits.
     pub trend_rank: usize,
@@ -167,6 +172,8 @@ pub fn fit(
         reduction_rounds: 0,
         max_residual: 0.0,
         rms_residual: 0.0,
+        max_data_misfit: 0.0,
+        rms_data_misfit: 0.0,
         trend_rank: 0,
         solver: options.solver,
         smoothing: options.smoothing,
@@ -175,15 +182,24 @@ pub fn fit(
         fast_breakdown: None,
     };
     let model = if reduce {
-        greedy_reduction(&pts, &vals, options, progress, &mut report)?
+        let model = greedy_reduction(&pts, &vals, options, progress, &mut report)?;
+        let fitted = model.values(&pts);
+        let misfit: Vec<f64> = fitted.iter().zip(&vals).map(|(s, f)| f - s).collect();
+        report.max_data_misfit = misfit.iter().fold(0.0, |m, e| m.max(e.abs()));
+        report.rms_data_misfit =
+            (misfit.iter().map(|e| e * e).sum::<f64>() / misfit.len() as f64).sqrt();
+        model
     } else {
         let sub = solve_subset(&pts, &vals, options, None, progress)?;
         absorb(&mut report, &sub);
-        if sub.solver != SolverChoice::PartitionOfUnity {
+        if sub.solver == SolverChoice::PartitionOfUnity {
+            (report.max_data_misfit, report.rms_data_misfit) = sub.data_misfit;
+        } else {
             // Measured afresh from the final model (its own evaluator), not the solver's vectors.
-            let (max_r, rms_r) = global_system_residual(&sub.model, &pts, &vals, options.smoothing);
-            report.max_residual = max_r;
-            report.rms_residual = rms_r;
+            let [max_r, rms_r, max_m, rms_m] =
+                global_system_residual(&sub.model, &pts, &vals, options.smoothing);
+            (report.max_residual, report.rms_residual) = (max_r, rms_r);
+            (report.max_data_misfit, report.rms_data_misfit) = (max_m, rms_m);
         }
         if !(report.max_residual <= options.accuracy) {
             return Err(Error::Numerical(format!(
@@ -222,20 +238,24 @@ fn accuracy_advice(solver: SolverChoice) -> &'static str {
     }
 }
 
-/// `max` and rms over the samples of `|f_i - s(x_i) + w l_i|` for a global model whose centres are
-/// `pts`, with `s` the model's own evaluation.
-fn global_system_residual(model: &RbfModel, pts: &[DVec3], vals: &[f64], w: f64) -> (f64, f64) {
+/// `[max, rms]` over the samples of the system residual `|f_i - s(x_i) + w l_i|`, then `[max, rms]` of
+/// the data misfit `|f_i - s(x_i)|`, for a global model whose centres are `pts`, with `s` the model's
+/// own evaluation.
+fn global_system_residual(model: &RbfModel, pts: &[DVec3], vals: &[f64], w: f64) -> [f64; 4] {
     let fitted = model.values(pts);
-    let (mut max_r, mut sum_sq) = (0.0f64, 0.0);
+    let (mut max_r, mut sum_sq, mut max_m, mut misfit_sq) = (0.0f64, 0.0, 0.0f64, 0.0);
     for ((s, f), l) in fitted.iter().zip(vals).zip(model.coefficients()) {
         let e = f - s + w * l;
         max_r = max_r.max(e.abs());
         sum_sq += e * e;
+        max_m = max_m.max((f - s).abs());
+        misfit_sq += (f - s) * (f - s);
     }
     if !max_r.is_finite() {
         max_r = f64::INFINITY;
     }
-    (max_r, (sum_sq / pts.len() as f64).sqrt())
+    let n = pts.len() as f64;
+    [max_r, (sum_sq / n).sqrt(), max_m, (misfit_sq / n).sqrt()]
 }
 
 fn validate(points: &[DVec3], values: &[f64], options: &FitOptions) -> Result<()> {
@@ -323,6 +343,8 @@ struct SubsetFit {
     solver: SolverChoice,
     solver_bytes: usize,
     fast_breakdown: Option<FastBreakdown>,
+    /// Partition of unity: (max, rms) data misfit measured with the residuals; unused otherwise.
+    data_misfit: (f64, f64),
 }
 
 /// Solves the full system on `pts` (every point a centre).
@@ -403,6 +425,7 @@ fn solve_subset(
         solver,
         solver_bytes,
         fast_breakdown,
+        data_misfit: (0.0, 0.0),
     })
 }
 
@@ -466,6 +489,7 @@ fn solve_partition_of_unity(
         solver: SolverChoice::PartitionOfUnity,
         solver_bytes,
         fast_breakdown: None,
+        data_misfit: (stats.max_data_misfit, stats.rms_data_misfit),
     })
 }
 

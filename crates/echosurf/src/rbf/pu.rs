@@ -88,6 +88,9 @@ pub(crate) struct PuStats {
     /// Largest and rms blended system residual over the samples (see [`PuModel::system_residuals`]).
     pub max_residual: f64,
     pub rms_residual: f64,
+    /// Largest and rms data misfit `|f_i - s(x_i)|` (includes the smoothing's intended misfit).
+    pub max_data_misfit: f64,
+    pub rms_data_misfit: f64,
     /// Samples where a patch whose weight is positive was not fitted to them (0 for a sound partition).
     pub foreign_weighted_samples: usize,
 }
@@ -214,6 +217,8 @@ pub(crate) fn fit_pu(
         max_patch_points: 0,
         max_residual: 0.0,
         rms_residual: 0.0,
+        max_data_misfit: 0.0,
+        rms_data_misfit: 0.0,
         foreign_weighted_samples: 0,
     };
     let mut members: Vec<Vec<u32>> = Vec::with_capacity(leaves.len());
@@ -244,12 +249,15 @@ pub(crate) fn fit_pu(
     );
     let (residuals, foreign) = model.system_residuals(values, &members);
     stats.foreign_weighted_samples = foreign;
-    let mut sum_sq = 0.0;
-    for r in &residuals {
+    let (mut sum_sq, mut misfit_sq) = (0.0, 0.0);
+    for &(r, m) in &residuals {
         stats.max_residual = stats.max_residual.max(r.abs());
+        stats.max_data_misfit = stats.max_data_misfit.max(m.abs());
         sum_sq += r * r;
+        misfit_sq += m * m;
     }
     stats.rms_residual = (sum_sq / residuals.len() as f64).sqrt();
+    stats.rms_data_misfit = (misfit_sq / residuals.len() as f64).sqrt();
     if !stats.max_residual.is_finite() {
         return Err(Error::Numerical(
             "partition-of-unity fit produced non-finite values".into(),
@@ -680,7 +688,8 @@ impl PuModel {
     /// `f_i - s_j(x_i) = -w l_ji`, so the blend of exact fits has residual 0; at w = 0 it is the data
     /// misfit). `members[j]` are patch j's sample indices (ascending). Also counts the samples where a
     /// patch with positive weight was not fitted to the sample (their residual includes its misfit).
-    fn system_residuals(&self, values: &[f64], members: &[Vec<u32>]) -> (Vec<f64>, usize) {
+    /// Each entry is (system residual, data misfit `f_i - s(x_i)`).
+    fn system_residuals(&self, values: &[f64], members: &[Vec<u32>]) -> (Vec<(f64, f64)>, usize) {
         let foreign = std::sync::atomic::AtomicUsize::new(0);
         let residuals = self
             .points
@@ -705,7 +714,10 @@ impl PuModel {
                 if outside {
                     foreign.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 }
-                values[i] - (sum_ws - self.smoothing * sum_wl) / sum_w
+                (
+                    values[i] - (sum_ws - self.smoothing * sum_wl) / sum_w,
+                    values[i] - sum_ws / sum_w,
+                )
             })
             .collect();
         (residuals, foreign.into_inner())

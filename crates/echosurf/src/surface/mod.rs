@@ -442,9 +442,13 @@ const BRACKET_OFFSETS: [f64; 10] = [0.25, -0.25, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5
 /// Bisection steps: the bracket (at most 2 spacings) shrinks below 1e-9 spacings.
 const BISECTION_STEPS: usize = 32;
 
+/// Search lines of [`bisect_onto_level`] besides the gradient's: the lattice axes.
+const AXIS_LINES: [DVec3; 3] = [DVec3::X, DVec3::Y, DVec3::Z];
+
 /// For each start point: the nearest sign change of `s - level` along the line through it in the
-/// direction of its gradient (within two lattice spacings), then bisection of that bracket; where no
-/// bracket is found the start point is kept. Returns positions, values and gradients there.
+/// direction of its gradient, else along a lattice axis (within two lattice spacings), then bisection of
+/// that bracket; where no bracket is found the start point is kept. Returns positions, values and
+/// gradients there.
 fn bisect_onto_level(
     field: &dyn ScalarField,
     level: f64,
@@ -453,35 +457,30 @@ fn bisect_onto_level(
     counter: &mut lattice::EvalCounter,
 ) -> (Vec<DVec3>, Vec<f64>, Vec<DVec3>) {
     let (v0, g0) = lattice::evaluate_gradients(field, starts, counter);
-    let directions: Vec<DVec3> = g0
-        .iter()
-        .map(|g| {
-            let n = g.normalize_or_zero();
+    let lines = 1 + AXIS_LINES.len();
+    let line = |k: usize, d: usize| -> DVec3 {
+        if d == 0 {
+            let n = g0[k].normalize_or_zero();
             if n == DVec3::ZERO { DVec3::Z } else { n }
+        } else {
+            AXIS_LINES[d - 1]
+        }
+    };
+    let per_start = lines * BRACKET_OFFSETS.len();
+    let probes: Vec<DVec3> = (0..starts.len())
+        .flat_map(|k| {
+            (0..lines).flat_map(move |d| {
+                BRACKET_OFFSETS.map(|t| starts[k] + line(k, d) * (t * spacing_mm))
+            })
         })
         .collect();
-    let probes: Vec<DVec3> = starts
-        .iter()
-        .zip(&directions)
-        .flat_map(|(&p, &d)| BRACKET_OFFSETS.map(|t| p + d * (t * spacing_mm)))
-        .collect();
     let (pv, _) = lattice::evaluate_gradients(field, &probes, counter);
-    // Bracket (t_a, value_a, t_b, value_b) in spacings along the line, or None.
+    // Per start: its search line and bracket (t_a, value_a, t_b, value_b) in spacings, or None.
+    let mut directions: Vec<DVec3> = Vec::with_capacity(starts.len());
     let mut brackets: Vec<Option<(f64, f64, f64, f64)>> = Vec::with_capacity(starts.len());
     for k in 0..starts.len() {
-        let at = |t: f64| -> f64 {
-            if t == 0.0 {
-                v0[k] - level
-            } else {
-                let j = BRACKET_OFFSETS
-                    .iter()
-                    .position(|&o| o == t)
-                    .expect("offset");
-                pv[k * BRACKET_OFFSETS.len() + j] - level
-            }
-        };
         let mut found = None;
-        // Consecutive points on each side, nearest pair first.
+        // Nearest pair first (over all lines), the gradient line first at equal distance.
         'search: for pair in [
             (0.0, 0.25),
             (0.0, -0.25),
@@ -494,13 +493,27 @@ fn bisect_onto_level(
             (1.5, 2.0),
             (-1.5, -2.0),
         ] {
-            let (a, b) = (at(pair.0), at(pair.1));
-            if a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0) {
-                found = Some((pair.0, a, pair.1, b));
-                break 'search;
+            for d in 0..lines {
+                let at = |t: f64| -> f64 {
+                    if t == 0.0 {
+                        v0[k] - level
+                    } else {
+                        let j = BRACKET_OFFSETS
+                            .iter()
+                            .position(|&o| o == t)
+                            .expect("offset");
+                        pv[k * per_start + d * BRACKET_OFFSETS.len() + j] - level
+                    }
+                };
+                let (a, b) = (at(pair.0), at(pair.1));
+                if a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0) {
+                    found = Some((d, (pair.0, a, pair.1, b)));
+                    break 'search;
+                }
             }
         }
-        brackets.push(found);
+        directions.push(line(k, found.map_or(0, |(d, _)| d)));
+        brackets.push(found.map(|(_, b)| b));
     }
     let active: Vec<usize> = (0..starts.len())
         .filter(|&k| brackets[k].is_some())
