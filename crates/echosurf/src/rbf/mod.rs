@@ -201,7 +201,7 @@ pub fn fit(
             (report.max_residual, report.rms_residual) = (max_r, rms_r);
             (report.max_data_misfit, report.rms_data_misfit) = (max_m, rms_m);
         }
-        if !(report.max_residual <= options.accuracy) {
+        if report.max_residual.is_nan() || report.max_residual > options.accuracy {
             return Err(Error::Numerical(format!(
                 "RBF fit ({:?} solver, {} samples, smoothing {} mm): the largest system residual \
                  |f_i - s(x_i) + w l_i| of the fitted model is {:.4} grey levels, above the \

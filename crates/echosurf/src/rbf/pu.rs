@@ -187,7 +187,7 @@ pub(crate) fn fit_pu(
             members.sort_unstable();
             let fit = solve_local(points, values, &members, centre, support_half, smoothing);
             let finished = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-            if finished % 64 == 0 {
+            if finished.is_multiple_of(64) {
                 progress.advance(finished);
             }
             fit

@@ -287,7 +287,7 @@ pub fn extract_surfaces_with_stats(
         let (final_values, _) = lattice::evaluate_gradients(field, &mesh.vertices, &mut counter);
         for v in &final_values {
             let error = (v - level).abs();
-            if !(error <= LEVEL_TOLERANCE) {
+            if error.is_nan() || error > LEVEL_TOLERANCE {
                 level_stats.off_level_vertices += 1;
             }
             if error.is_finite() {
@@ -420,7 +420,8 @@ fn project_onto_surface(
             positions[i as usize] = moved[k];
             normals[i as usize] = -gradients[k];
             let g = gradients[k].length();
-            if !((values[k] - level).abs() <= options.surface_tolerance_mm * g) {
+            let miss = (values[k] - level).abs();
+            if miss.is_nan() || miss > options.surface_tolerance_mm * g {
                 outcome.unconverged += 1;
             }
         }
