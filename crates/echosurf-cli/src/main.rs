@@ -1,6 +1,8 @@
 //! `echosurf`: the command-line face of the echosurf library. Each subcommand lives in `cmd/` and only
 //! parses arguments, calls the library and prints; all the work is in the library.
 
+#[macro_use]
+mod stdout;
 mod cmd;
 mod progress;
 
@@ -44,12 +46,16 @@ enum Command {
     Bench(cmd::bench::Args),
     /// Simulate the duck, extract, compare with truth, render, and summarise.
     Demo(cmd::demo::Args),
+    /// Run as a 3D Slicer command-line module (`--xml` prints its description); see echosurf-slicer.
+    SlicerModule(Box<cmd::slicer::Args>),
+    /// Extract every sweep a manifest lists: resumable, shardable (--shard I/N), one summary table.
+    Batch(cmd::batch::Args),
 }
 
 /// The error and its causes on one line, each cause once. The library's file errors already end with
 /// their cause (so a library user's `to_string()` says why), and anyhow's `{:#}` would repeat it:
 /// "a.mha: No such file or directory (os error 2): No such file or directory (os error 2)".
-fn error_message(error: &anyhow::Error) -> String {
+pub(crate) fn error_message(error: &anyhow::Error) -> String {
     let mut message = String::new();
     for cause in error.chain() {
         let text = cause.to_string();
@@ -63,12 +69,13 @@ fn error_message(error: &anyhow::Error) -> String {
     message
 }
 
-/// Exit code of a run stopped by Ctrl-C (128 + SIGINT), as shells report it.
+/// Exit code of a run stopped by Ctrl-C, SIGTERM or SIGHUP (128 + SIGINT, as shells report Ctrl-C).
 const INTERRUPTED_EXIT_CODE: i32 = 130;
 
 fn main() -> ExitCode {
-    // Ctrl-C: remove the unfinished hidden temporary outputs, so an interrupted run leaves neither a
-    // partial file nor litter. Finished outputs were renamed into place whole and stay.
+    // Ctrl-C, SIGTERM and SIGHUP (the `termination` feature of ctrlc): remove the unfinished hidden
+    // temporary outputs, so an interrupted run leaves neither a partial file nor litter. Finished
+    // outputs were renamed into place whole and stay.
     let _ = ctrlc::set_handler(|| {
         let removed = echosurf::io::atomic::remove_in_flight_temp_files();
         eprintln!(
@@ -94,9 +101,21 @@ fn main() -> ExitCode {
         Command::Reconstruct(a) => cmd::reconstruct::run(a),
         Command::Bench(a) => cmd::bench::run(a),
         Command::Demo(a) => cmd::demo::run(a),
+        Command::SlicerModule(a) => cmd::slicer::run(*a),
+        Command::Batch(a) => cmd::batch::run(a),
     };
+    let result = result.and_then(|()| Ok(stdout::flush_out()?));
     match result {
         Ok(()) => ExitCode::SUCCESS,
+        // The reader of our output left (`| head`): stop quietly, as a program killed by SIGPIPE would.
+        Err(e)
+            if e.chain().any(|c| {
+                c.downcast_ref::<stdout::StdoutError>()
+                    .is_some_and(stdout::StdoutError::is_broken_pipe)
+            }) =>
+        {
+            ExitCode::SUCCESS
+        }
         Err(e) => {
             eprintln!("error: {}", error_message(&e));
             ExitCode::FAILURE

@@ -21,10 +21,12 @@ use common::echosurf;
 
 /// Runs `echosurf segment` on the spine sweep with `--auto-init`, `extra` options and `--out out`;
 /// returns the masks' pixels (MET_UCHAR).
+/// The paper's band on the spine (`--bone never`: these tests are about its propagation; the bone band
+/// is tested in `tests/real_extract.rs`).
 fn segment_spine(out: &Path, extra: &[String]) -> Vec<u8> {
     let mut args = vec!["segment".to_string()];
     args.extend(spine_args());
-    args.extend(["--auto-init", "--out"].map(String::from));
+    args.extend(["--bone", "never", "--auto-init", "--out"].map(String::from));
     args.push(out.display().to_string());
     args.extend_from_slice(extra);
     let result = echosurf(&args);

@@ -67,3 +67,46 @@ fn simulate_rejects_bad_parameters() {
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("pixel size"));
 }
+
+#[test]
+fn simulate_bone_physics_writes_the_probe_side_truth_and_records_the_knobs() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bone");
+    let status = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+        .args(["simulate", "--phantom", "bone", "--frames-per-sweep", "3"])
+        .args(["--width", "48", "--height", "48", "--pixel-size", "0.8"])
+        .args(["--truth-resolution", "1.5", "--scatterer-density", "0.5"])
+        .args(["--specular-exponent", "6", "--out"])
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let description: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("phantom.json")).unwrap()).unwrap();
+    let acoustics = &description["options"]["acoustics"];
+    assert_eq!(acoustics["scatterer_density"], 0.5);
+    assert_eq!(acoustics["specular_exponent"], 6.0);
+    assert_eq!(acoustics["depth_gain_compensation"], true);
+    // The bone preset: bone's attenuation in the object, tissue around it.
+    assert_eq!(acoustics["object"]["attenuation_db_per_cm_mhz"], 20.0);
+    // The truth is the probe side only: an open sheet, every triangle facing up.
+    let truth = echosurf::io::read_mesh(&out.join("truth.ply")).unwrap();
+    assert!(!truth.triangles.is_empty());
+    assert!(!truth.topology().is_closed_manifold());
+    for t in &truth.triangles {
+        let [a, b, c] = t.map(|i| truth.vertices[i as usize]);
+        assert!((b - a).cross(c - a).z > 0.0);
+    }
+}
+
+#[test]
+fn simulate_rejects_a_bad_physics_knob() {
+    let dir = tempfile::tempdir().unwrap();
+    let output = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+        .args(["simulate", "--scatterer-density", "0", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("scatterer_density"));
+}

@@ -193,9 +193,70 @@ pub fn check_extract_budget(
     )))
 }
 
+/// Per area sample of `compare`: the point (3 x f64), its distance (f64) and the parallel collection's
+/// chunk buffers.
+const COMPARE_BYTES_PER_SAMPLE: u64 = 48;
+/// Per triangle of either mesh in `compare`: the mesh, its bounding-volume hierarchy, the edge maps of
+/// the topology and the vertex distances (fitted to measured peaks: docs/decisions/0028-memory-budget-estimates.md).
+const COMPARE_BYTES_PER_TRIANGLE: u64 = 350;
+
+/// Area samples `compare` places on a surface of `area_mm2` (as `metrics::compare_meshes` counts them).
+pub fn compare_sample_count(area_mm2: f64, options: &crate::metrics::CompareOptions) -> u64 {
+    let wanted = (area_mm2 * options.samples_per_mm2).ceil();
+    let wanted = if wanted.is_finite() { wanted } else { 0.0 };
+    (wanted.max(options.min_samples as f64).min(u64::MAX as f64) as u64)
+        .clamp(1, options.max_samples.max(1) as u64)
+}
+
+/// Refuses a comparison whose area samples on both surfaces would take more than `budget_bytes`,
+/// naming the sample counts and the options that lower them.
+pub fn check_compare_budget(
+    mesh: &crate::mesh::Mesh,
+    truth: &crate::mesh::Mesh,
+    options: &crate::metrics::CompareOptions,
+    budget_bytes: u64,
+) -> Result<()> {
+    let mesh_samples = compare_sample_count(mesh.area_mm2(), options);
+    let truth_samples = compare_sample_count(truth.area_mm2(), options);
+    let samples = mesh_samples
+        .saturating_add(truth_samples)
+        .saturating_mul(COMPARE_BYTES_PER_SAMPLE);
+    let meshes = ((mesh.triangles.len() + truth.triangles.len()) as u64)
+        .saturating_mul(COMPARE_BYTES_PER_TRIANGLE);
+    let need = samples.saturating_add(meshes);
+    if need <= budget_bytes {
+        return Ok(());
+    }
+    Err(Error::ResourceLimit(format!(
+        "compare would place {mesh_samples} + {truth_samples} area samples at {} per mm^2 and \
+         need about {} (samples {}, meshes {}) but the memory budget is {}: lower \
+         --samples-per-mm2 or --max-samples, or raise --memory-budget",
+        options.samples_per_mm2,
+        mb(need),
+        mb(samples),
+        mb(meshes),
+        mb(budget_bytes)
+    )))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn compare_samples_follow_the_density_within_the_cap() {
+        let options = crate::metrics::CompareOptions {
+            samples_per_mm2: 1e300,
+            max_samples: usize::MAX,
+            ..crate::metrics::CompareOptions::default()
+        };
+        assert_eq!(compare_sample_count(100.0, &options), u64::MAX);
+        let default = crate::metrics::CompareOptions::default();
+        assert_eq!(
+            compare_sample_count(1e12, &default),
+            default.max_samples as u64
+        );
+    }
 
     #[test]
     fn default_budget_is_positive_and_below_total_memory() {

@@ -6,6 +6,20 @@
 
 use std::time::Instant;
 
+/// A zeroed buffer of `n` elements, or a [`crate::Error::ResourceLimit`] naming `what` when the
+/// allocation fails (instead of the abort a plain `vec!` gives under `ulimit -v` or overcommit limits).
+pub fn try_zeroed_vec<T: Clone + Default>(n: usize, what: &str) -> crate::Result<Vec<T>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(n).map_err(|_| {
+        crate::Error::ResourceLimit(format!(
+            "{what}: could not allocate {n} x {} bytes",
+            std::mem::size_of::<T>()
+        ))
+    })?;
+    v.resize(n, T::default());
+    Ok(v)
+}
+
 /// Resident-set high-water mark of this process in bytes, if the platform reports it.
 pub fn peak_rss_bytes() -> Option<u64> {
     read_status_kib("VmHWM:").map(|k| k * 1024)

@@ -672,6 +672,8 @@ mod binning_tests {
                 band_radius_inside_px: 1.0,
                 band_radius_outside_px: 1.0,
             },
+            bone_sweep: false,
+            bone_echoes: Vec::new(),
         };
         let set = collect_samples_binned(&seq, &poses, &masks, [2, 2]);
         assert_eq!(set.len(), 2);

@@ -176,7 +176,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             ));
         }
     }
-    print!("{table}");
+    out!("{table}");
     if let Some(dir) = &args.out {
         write_bytes_atomic(&dir.join("table.md"), table.as_bytes())?;
         let json = serde_json::json!({

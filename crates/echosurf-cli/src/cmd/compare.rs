@@ -30,9 +30,9 @@ impl From<FacingArg> for FacingSide {
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The mesh to score (.ply, .stl or .obj).
+    /// The mesh to score (.ply, .stl, .obj or .vtk; one tagged SPACE=LPS is read into RAS).
     pub mesh: PathBuf,
-    /// The ground-truth mesh (.ply, .stl or .obj).
+    /// The ground-truth mesh (.ply, .stl, .obj or .vtk).
     pub truth: PathBuf,
     /// Print one JSON object instead of the table.
     #[arg(long)]
@@ -74,6 +74,13 @@ pub struct Args {
     /// Distance (mm) shown red on the maps.
     #[arg(long, default_value_t = 1.0)]
     pub map_scale_mm: f64,
+    /// Refuse up front when the area samples would need more than this many MB (default: half the
+    /// machine's memory).
+    #[arg(long)]
+    pub memory_budget: Option<f64>,
+    /// Coordinates of the maps written.
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
 }
 
 /// Writes `mesh` coloured by each vertex's distance to `to` (see `Args::error_map`).
@@ -82,10 +89,11 @@ fn write_distance_map(
     mesh: &echosurf::mesh::Mesh,
     to: &echosurf::mesh::Mesh,
     scale_mm: f64,
+    space: io::Space,
 ) -> anyhow::Result<String> {
     let (distances, colours) = echosurf::metrics::vertex_distance_map(mesh, to, scale_mm);
     let values: Vec<f32> = distances.iter().map(|&d| d as f32).collect();
-    io::write_ply_with_vertex_values(path, mesh, "distance_mm", &values, &colours)?;
+    io::write_ply_with_vertex_values(path, mesh, "distance_mm", &values, &colours, space)?;
     Ok(format!(
         "{}: {} vertices coloured by distance_mm, blue 0 mm to red {scale_mm} mm and beyond",
         path.display(),
@@ -118,14 +126,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         inputs.extend(args.config.iter().cloned());
         check_outputs(&inputs, &maps)?;
     }
-    let mesh = echosurf::io::read_mesh(&args.mesh)?;
-    let truth = echosurf::io::read_mesh(&args.truth)?;
+    let (mesh, mesh_tag) = echosurf::io::read_mesh_and_space(&args.mesh)?;
+    let (truth, truth_tag) = echosurf::io::read_mesh_and_space(&args.truth)?;
     let options = CompareOptions {
         samples_per_mm2: args.samples_per_mm2,
         max_samples: args.max_samples,
         seed: args.seed,
         ..CompareOptions::default()
     };
+    let budget = super::extract::memory_budget_bytes(args.memory_budget)?;
+    echosurf::budget::check_compare_budget(&mesh, &truth, &options, budget).with_context(|| {
+        format!(
+            "comparing {} with {}",
+            args.mesh.display(),
+            args.truth.display()
+        )
+    })?;
     let comparison = compare_meshes(&mesh, &truth, &options).with_context(|| {
         format!(
             "comparing {} with {}",
@@ -133,11 +149,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.truth.display()
         )
     })?;
+    // The frame the meshes are in, when a sequence says it (else the frame of whatever made them).
+    let mut swept_frame = None;
     let swept = match &args.sequence {
         None => None,
         Some(path) => {
             let (sequence, calibration, poses) =
                 super::extract::posed_sequence(path, args.config.as_deref(), &args.world)?;
+            swept_frame = Some(poses.world_frame.clone());
             let image_to_world: Vec<_> = poses.poses.iter().map(|p| p.image_to_world).collect();
             let score = SweptFacingTruth::new(
                 &truth,
@@ -161,10 +180,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .context("comparison serialises to an object")?;
         object.insert("mesh".into(), serde_json::json!(args.mesh));
         object.insert("truth".into(), serde_json::json!(args.truth));
+        // The tags found (null: untagged, read as RAS); both are compared in working RAS coordinates.
+        object.insert(
+            "coordinates".into(),
+            serde_json::json!({
+                "frame": swept_frame,
+                "space": args.space.space,
+                "mesh_tag": mesh_tag,
+                "truth_tag": truth_tag,
+            }),
+        );
         if let Some(score) = &swept {
             object.insert("sequence".into(), serde_json::json!(args.sequence));
             object.insert("swept_facing".into(), serde_json::to_value(score)?);
         }
+        object.insert(
+            "mesh_largest_piece_area_share".into(),
+            echosurf::bench::largest_piece_area_share(&mesh).into(),
+        );
         for (key, topo) in [
             ("mesh", &comparison.mesh_topology),
             ("truth", &comparison.truth_topology),
@@ -178,20 +211,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 topo.is_closed_manifold().into(),
             );
         }
-        println!("{}", serde_json::to_string(&value)?);
+        outln!("{}", serde_json::to_string(&value)?);
     } else {
-        print!("{}", table(&args, &comparison, swept.as_ref()));
+        out!("{}", table(&args, &comparison, swept.as_ref()));
     }
     for (path, from, to) in [
         (&args.error_map, &mesh, &truth),
         (&args.miss_map, &truth, &mesh),
     ] {
         if let Some(path) = path {
-            let line = write_distance_map(path, from, to, args.map_scale_mm)?;
+            let line = write_distance_map(path, from, to, args.map_scale_mm, args.space.space)?;
             if args.json {
                 eprintln!("{line}");
             } else {
-                println!("{line}");
+                outln!("{line}");
             }
         }
     }

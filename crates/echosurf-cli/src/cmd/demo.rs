@@ -9,7 +9,7 @@ use anyhow::Context;
 use echosurf::io;
 use echosurf::metrics::{CompareOptions, compare_meshes};
 use echosurf::pipeline::{self, ExtractOptions};
-use echosurf::simulate::{SimulationOptions, simulate, write_simulation};
+use echosurf::simulate::{SimulationNames, SimulationOptions, simulate, write_simulation_as};
 
 use super::extract::write_preview;
 use crate::progress::BarProgress;
@@ -29,6 +29,8 @@ pub struct Args {
     /// on each echo's ridge).
     #[arg(long, default_value = "auto")]
     pub sheet: String,
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -40,12 +42,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         seed: args.seed,
         ..SimulationOptions::default()
     };
-    println!("simulating a freehand sweep of the duck phantom ...");
+    outln!("simulating a freehand sweep of the duck phantom ...");
     let sim = simulate(&sim_options, &BarProgress::new())?;
-    let files = write_simulation(&args.out, "duck", &sim, &sim_options)?;
+    let files = write_simulation_as(
+        &args.out,
+        &SimulationNames::plain("duck"),
+        &sim,
+        &sim_options,
+        args.space.space,
+    )?;
     let sim_seconds = start.elapsed().as_secs_f64();
 
-    println!("extracting the surface ...");
+    outln!("extracting the surface ...");
     let options = ExtractOptions {
         seed: args.seed,
         sheet,
@@ -62,11 +70,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .surfaces
         .first()
         .context("the pipeline returned no surface")?;
-    io::write_mesh(&mesh_path, &surface.mesh)?;
+    io::write_mesh_in(&mesh_path, &surface.mesh, args.space.space)?;
     let report_path = args.out.join("duck_report.json");
+    let report = super::space::with_coordinates(
+        &output.report,
+        &output.report.parameters.world_frame,
+        args.space.space,
+    )?;
     io::atomic::write_bytes_atomic(
         &report_path,
-        serde_json::to_string_pretty(&output.report)?.as_bytes(),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;
 
     // All true walls in one mesh (the duck's outer and inner wall): each extracted sheet is scored
@@ -113,13 +126,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     write_preview(&preview_path, &output, Some(truth))?;
 
     let r = &output.report;
-    println!();
-    println!(
+    outln!();
+    outln!(
         "echosurf demo: duck phantom, {} frames in {} sweeps",
         sim.sequence.frames.len(),
         sim.sweeps.len()
     );
-    println!(
+    outln!(
         "  samples {} of {} kept pixels; iso {:.1} (background {:.1}, boundary {:.1})",
         r.counts.samples,
         r.counts.kept_pixels,
@@ -127,7 +140,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         r.levels.map(|l| l.background).unwrap_or(f32::NAN),
         r.levels.map(|l| l.boundary).unwrap_or(f32::NAN)
     );
-    println!(
+    outln!(
         "  surface: {}, {} triangles, {} component(s)",
         r.sheets
             .first()
@@ -136,7 +149,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         surface.mesh.triangles.len(),
         comparison.mesh_topology.components
     );
-    println!(
+    outln!(
         "  accuracy vs true walls: mean {:.2} mm, p95 {:.2} mm; completeness (1 mm) {:.1} % of the \
          walls, {:.1} % of the swept walls facing the beam within 30 deg",
         comparison.accuracy.mean_mm,
@@ -149,24 +162,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .iter()
         .map(|s| format!("{} {:.2}s", s.stage, s.seconds))
         .collect();
-    println!(
+    outln!(
         "  time: simulate {sim_seconds:.1}s, extract {:.1}s ({})",
         r.total_seconds,
         stages.join(", ")
     );
-    println!("files:");
-    println!("  sequence     {}", files.sequence.display());
-    println!("  calibration  {}", files.calibration.display());
+    outln!("files:");
+    outln!("  sequence     {}", files.sequence.display());
+    outln!("  calibration  {}", files.calibration.display());
     for t in &files.truth {
-        println!("  truth        {}", t.display());
+        outln!("  truth        {}", t.display());
     }
-    println!("  surface      {}", mesh_path.display());
-    println!("  report       {}", report_path.display());
-    println!("  preview      {}", preview_path.display());
-    println!(
+    outln!("  surface      {}", mesh_path.display());
+    outln!("  report       {}", report_path.display());
+    outln!("  preview      {}", preview_path.display());
+    outln!(
         "  error map    {} (distance to the true walls: blue 0 mm to red {ERROR_MAP_SCALE_MM} mm and beyond)",
         error_map_path.display()
     );
-    println!("total {:.1} s", start.elapsed().as_secs_f64());
+    outln!("total {:.1} s", start.elapsed().as_secs_f64());
     Ok(())
 }

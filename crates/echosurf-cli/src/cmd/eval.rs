@@ -24,6 +24,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let model = RbfModel::load(&args.model)?;
     let cloud = echosurf::io::read_point_cloud(&args.points)?;
     let (values, gradients) = model.values_and_gradients(&cloud.positions);
+    // Written as f32: a value or gradient past single precision (or NaN) would be written as inf/NaN.
+    let representable = |v: f64| v.is_finite() && v.abs() <= f32::MAX as f64;
+    let bad = values
+        .iter()
+        .zip(&gradients)
+        .filter(|(v, g)| !(representable(**v) && g.to_array().into_iter().all(representable)))
+        .count();
+    if bad > 0 {
+        anyhow::bail!(
+            "{}: the model's value or gradient is infinite, NaN or beyond single precision at {bad} \
+             of the {} points of {}: its coefficients are out of range",
+            args.model.display(),
+            values.len(),
+            args.points.display()
+        );
+    }
     let mut scalars: Vec<(String, Vec<f32>)> = cloud
         .scalars
         .into_iter()
@@ -38,7 +54,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         scalars,
     };
     echosurf::io::write_point_cloud(&args.out, &out)?;
-    println!(
+    outln!(
         "evaluated {} points ({} centres) -> {}",
         values.len(),
         model.centres().len(),

@@ -24,9 +24,12 @@ pub struct Args {
     /// background and boundary echo levels of the kept pixels.
     #[arg(long, default_value = "auto")]
     pub iso: String,
-    /// Output mesh (.ply, .stl or .obj). With several levels, `_iso<LEVEL>` is added before the extension.
+    /// Output mesh (.ply, .stl, .obj or .vtk). With several levels, `_iso<LEVEL>` is added before the
+    /// extension.
     #[arg(long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
     /// Route: `rbf` (segment, fit one RBF to the kept pixels, surface it) or `voxel` (PLUS-like volume of
     /// all clipped pixels with the config's VolumeReconstruction settings, Gaussian, marching cubes).
     #[arg(long, default_value = "rbf")]
@@ -218,7 +221,12 @@ fn parse_method(args: &Args) -> anyhow::Result<Method> {
             Ok(Method::Voxel(VoxelRouteOptions {
                 spacing_mm: args.voxel_spacing,
                 smoothing_sigma_mm: args.voxel_smoothing,
-                memory_budget_bytes: args.voxel_memory_mb.map(|mb| mb.saturating_mul(1 << 20)),
+                // --voxel-memory-mb, else --memory-budget when given (else the voxel default).
+                memory_budget_bytes: match (args.voxel_memory_mb, args.memory_budget) {
+                    (Some(mb), _) => Some(mb.saturating_mul(1 << 20)),
+                    (None, Some(_)) => Some(memory_budget_bytes(args.memory_budget)?),
+                    (None, None) => None,
+                },
             }))
         }
         other => anyhow::bail!("--method {other}: expected rbf or voxel"),
@@ -313,13 +321,24 @@ pub(crate) fn posed_sequence(
     Option<io::Calibration>,
     io::PoseResolution,
 )> {
-    let sequence = io::read_sequence(path)?;
-    let calibration = config.map(io::read_calibration).transpose()?;
+    let sequence = super::inputs::read_sequence(path)?;
+    let calibration = config
+        .map(|c| super::inputs::read_calibration_for(c, &sequence, path))
+        .transpose()?;
     let poses = io::resolve_poses(&sequence, calibration.as_ref(), world_choice(world)?, path)?;
     Ok((sequence, calibration, poses))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    run_with(args, &BarProgress::new()).map(|_| ())
+}
+
+/// `extract` with progress reported to `progress`: checks, runs the pipeline, writes every output and
+/// prints the summary; returns what the pipeline produced (for the Slicer module's return values).
+pub fn run_with(
+    args: Args,
+    progress: &dyn echosurf::progress::Progress,
+) -> anyhow::Result<ExtractOutput> {
     let seg = &args.segment;
     let iso = parse_iso(&args.iso)?;
     if !(args.resolution.is_finite() && args.resolution > 0.0) {
@@ -347,12 +366,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     check_outputs(&seg.input_files(), &planned_outputs(&args, &iso))?;
-    let sequence = io::read_sequence(&seg.sequence)?;
+    let sequence = super::inputs::read_sequence(&seg.sequence)?;
     let calibration = io::read_calibration(&seg.config)?;
     let init = match &seg.init {
         Some(path) => InitialBand::load(path, sequence.width, sequence.height)?,
         None => InitialBand::Auto,
     };
+    // After the band: a bad band file is the more specific complaint.
+    super::inputs::check_clip(&calibration, &sequence, &seg.config, &seg.sequence)?;
     let method = parse_method(&args)?;
     let defaults = FitOptions::default();
     let options = ExtractOptions {
@@ -409,12 +430,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
     };
-    let progress = BarProgress::new();
-    let output = pipeline::extract(&sequence, Some(&calibration), &options, &progress)
+    let output = pipeline::extract(&sequence, Some(&calibration), &options, progress)
         .with_context(|| format!("extracting a surface from {}", seg.sequence.display()))?;
     write_outputs(&args, &output)?;
-    print_summary(&args, &output);
-    Ok(())
+    print_summary(&args, &output)?;
+    Ok(output)
 }
 
 /// The files `write_outputs` will write, each with the option that names it: one mesh per level
@@ -436,7 +456,11 @@ fn planned_outputs(args: &Args, iso: &IsoLevels) -> Vec<Output> {
 pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
     let several = output.surfaces.len() > 1;
     for s in &output.surfaces {
-        io::write_mesh(&mesh_path(&args.out, s.level, several), &s.mesh)?;
+        io::write_mesh_in(
+            &mesh_path(&args.out, s.level, several),
+            &s.mesh,
+            args.space.space,
+        )?;
     }
     if let Some(path) = &args.model {
         match &output.model {
@@ -448,7 +472,12 @@ pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> 
         io::write_point_cloud(path, &output.samples.to_point_cloud())?;
     }
     if let Some(path) = &args.report {
-        let json = serde_json::to_string_pretty(&output.report)?;
+        let report = super::space::with_coordinates(
+            &output.report,
+            &output.report.parameters.world_frame,
+            args.space.space,
+        )?;
+        let json = serde_json::to_string_pretty(&report)?;
         io::atomic::write_bytes_atomic(path, json.as_bytes())?;
     }
     if let Some(path) = &args.preview {
@@ -505,7 +534,10 @@ pub fn write_preview(
     Ok(())
 }
 
-fn print_sample_counts(c: &pipeline::StageCounts, fit: Option<&echosurf::rbf::FitReport>) {
+fn print_sample_counts(
+    c: &pipeline::StageCounts,
+    fit: Option<&echosurf::rbf::FitReport>,
+) -> anyhow::Result<()> {
     // Partition of unity stores each patch's samples, overlaps included: not a reduction of the samples.
     let model = match fit {
         Some(f) if f.patches > 0 => format!(
@@ -514,7 +546,13 @@ fn print_sample_counts(c: &pipeline::StageCounts, fit: Option<&echosurf::rbf::Fi
         ),
         _ => format!("{} centres", c.centres),
     };
-    println!(
+    if c.bone_sweep {
+        outln!(
+            "bone: bright echoes over an acoustic shadow in most frames, the probe on tissue: the band is the \
+             bone's echo, fitted against each echo's own contrast (--bone never: the paper's band)"
+        );
+    }
+    outln!(
         "{} of {} frames used; kept {} of {} pixels ({:.1}%); {} samples -> {model}",
         c.frames_used,
         c.frames,
@@ -523,21 +561,24 @@ fn print_sample_counts(c: &pipeline::StageCounts, fit: Option<&echosurf::rbf::Fi
         100.0 * c.kept_pixels as f64 / c.pixels.max(1) as f64,
         c.samples,
     );
+    Ok(())
 }
 
-fn print_summary(args: &Args, output: &ExtractOutput) {
+fn print_summary(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
     let r = &output.report;
     let c = &r.counts;
     if r.voxel.is_some() {
-        println!(
+        outln!(
             "{} of {} frames used; all {} pixels (inside the clip rectangle) go into the volume",
-            c.frames_used, c.frames, c.pixels
+            c.frames_used,
+            c.frames,
+            c.pixels
         );
     } else {
-        print_sample_counts(c, r.fit.as_ref());
+        print_sample_counts(c, r.fit.as_ref())?;
     }
     if let Some(l) = r.levels {
-        println!(
+        outln!(
             "echo levels: background {:.1}, boundary {:.1}, strong echoes {:.1}{}",
             l.background,
             l.boundary,
@@ -550,7 +591,7 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
         );
     }
     if let Some(fit) = &r.fit {
-        println!(
+        outln!(
             "fit: w = {} mm, max system residual {:.2} grey, data misfit rms {:.2} max {:.2} grey, \
              {} iterations",
             r.parameters.smoothing_mm,
@@ -561,7 +602,7 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
         );
     }
     if let Some(v) = &r.voxel {
-        println!(
+        outln!(
             "volume: {}x{}x{} voxels at {} mm ({} interpolation, {} compounding, hole filling {}); \
              {} hit, {} filled; Gaussian sigma {} mm; {} triangles dropped at the data edge",
             v.dims[0],
@@ -580,7 +621,7 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
     let several = output.surfaces.len() > 1;
     for (s, used) in output.surfaces.iter().zip(&r.sheets) {
         let t = s.mesh.topology();
-        println!(
+        outln!(
             "iso {}: {}, {} triangles, {} component(s), {} -> {}",
             format_level(s.level),
             describe_sheet(used, r.parameters.sheet),
@@ -601,7 +642,7 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
         .iter()
         .map(|s| format!("{} {:.2}s", s.stage, s.seconds))
         .collect();
-    println!(
+    outln!(
         "time {:.2} s ({}); peak memory {}",
         r.total_seconds,
         stages.join(", "),
@@ -612,6 +653,7 @@ fn print_summary(args: &Args, output: &ExtractOutput) {
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
+    Ok(())
 }
 
 /// `--echo-margin`: 0 selects uniform thinning; negative or non-finite is an error.

@@ -65,9 +65,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .with_context(|| format!("fitting {}", args.points.display()))?;
     model.save(&args.out)?;
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        outln!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        println!(
+        outln!(
             "{} samples ({} after merging) -> {} centres, {:?} solver, {} iterations, \
              max residual {:.3}, rms {:.3}, {:.2} s -> {}",
             report.input_points,

@@ -57,11 +57,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         inputs.extend(args.config.iter().cloned());
         check_outputs(&inputs, &[output("--frame-png", png, Holds::Png)])?;
     }
-    let sequence = io::read_sequence(&args.sequence)?;
+    let sequence = super::inputs::read_sequence(&args.sequence)?;
     let calibration = args
         .config
         .as_deref()
-        .map(io::read_calibration)
+        .map(|c| super::inputs::read_calibration_for(c, &sequence, &args.sequence))
         .transpose()?;
     let summary = io::summarise(
         &sequence,
@@ -97,15 +97,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if args.json {
         let text = serde_json::to_string_pretty(&summary).context("serialising the summary")?;
-        println!("{text}");
+        outln!("{text}");
     } else {
-        print!("{}", summary.to_text(&args.sequence.display().to_string()));
+        out!("{}", summary.to_text(&args.sequence.display().to_string()));
     }
     if let Some(line) = written {
         if args.json {
             eprintln!("{line}");
         } else {
-            println!("{line}");
+            outln!("{line}");
         }
     }
     Ok(())

@@ -1,10 +1,12 @@
 //! One module per subcommand.
+pub mod batch;
 pub mod bench;
 pub mod compare;
 pub mod demo;
 pub mod eval;
 pub mod extract;
 pub mod fit;
+pub mod inputs;
 pub mod inspect;
 pub mod outputs;
 pub mod reconstruct;
@@ -12,4 +14,6 @@ pub mod render;
 pub mod sample;
 pub mod segment;
 pub mod simulate;
+pub mod slicer;
+pub mod space;
 pub mod surface;

@@ -6,12 +6,13 @@
 
 use std::path::{Path, PathBuf};
 
+use echosurf::io::atomic::{Destination, destination};
 use echosurf::io::mesh_io::MESH_EXTENSIONS;
 
 /// What an output file holds, which fixes the extensions its name may end in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Holds {
-    /// A triangle mesh: PLY, STL or OBJ, chosen by the extension.
+    /// A triangle mesh: PLY, STL, OBJ or VTK, chosen by the extension.
     Mesh,
     /// A PNG picture.
     Png,
@@ -38,7 +39,7 @@ impl Holds {
 
     fn description(self) -> &'static str {
         match self {
-            Holds::Mesh => "a mesh is written as PLY, STL or OBJ by the extension",
+            Holds::Mesh => "a mesh is written as PLY, STL, OBJ or VTK by the extension",
             Holds::Png => "the picture is written as PNG",
             Holds::MetaImage => "this is written as a MetaImage file with its data inside",
             Holds::PointCloud => "the point cloud is written as PLY",
@@ -67,11 +68,17 @@ pub fn output(option: impl Into<String>, path: &Path, holds: Holds) -> Output {
 }
 
 /// Refuses an output that is the same file as one of `inputs` or as another output, whose name does
-/// not end in an extension of what it holds, that is a folder, or whose folder does not exist. Paths
-/// are compared resolved, so `./a.mha`, `dir/../a.mha` and a symbolic link to it are one file; an
-/// output that does not exist yet is resolved through its folder.
+/// not end in an extension of what it holds, that is a folder or a special file other than a character
+/// device, whose folder does not exist, or that cannot be written. Paths are compared resolved (links
+/// followed, `.`/`..` removed) and existing files also by device and inode, so `./a.mha`, `dir/../a.mha`,
+/// a hard or symbolic link to it are one file; an output that does not exist yet is resolved through
+/// its folder. Writability is tried for real (a probe file created and removed), so a read-only folder
+/// fails here rather than after the work.
 pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<()> {
-    let inputs: Vec<(PathBuf, &PathBuf)> = inputs.iter().map(|p| (resolved(p), p)).collect();
+    let inputs: Vec<(PathBuf, Option<FileId>, &PathBuf)> = inputs
+        .iter()
+        .map(|p| (resolved(p), file_id(p), p))
+        .collect();
     let mut seen: Vec<(PathBuf, &str)> = Vec::with_capacity(outputs.len());
     for Output {
         option,
@@ -79,8 +86,16 @@ pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<(
         holds,
     } in outputs
     {
-        let target = resolved(path);
-        if let Some((_, input)) = inputs.iter().find(|(p, _)| *p == target) {
+        let destination = destination(path).map_err(|e| anyhow::anyhow!("{option} {e}"))?;
+        let device = matches!(destination, Destination::Direct(_));
+        let target = match &destination {
+            Destination::File(p) | Destination::Direct(p) => resolved(p),
+        };
+        let id = file_id(&target);
+        if let Some((_, _, input)) = inputs
+            .iter()
+            .find(|(p, input_id, _)| *p == target || (id.is_some() && *input_id == id))
+        {
             anyhow::bail!(
                 "{option} {}: that is {}, an input of this run; echosurf does not write over what it \
                  reads, so name another output file",
@@ -88,7 +103,7 @@ pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<(
                 input.display()
             );
         }
-        if let Some((_, earlier)) = seen.iter().find(|(p, _)| *p == target) {
+        if let Some((_, earlier)) = seen.iter().find(|(p, _)| *p == target && !device) {
             anyhow::bail!(
                 "{earlier} and {option} both name {}; each output needs a file of its own",
                 path.display()
@@ -107,20 +122,68 @@ pub fn check_outputs(inputs: &[PathBuf], outputs: &[Output]) -> anyhow::Result<(
                 listed.join(", ")
             );
         }
-        if path.is_dir() {
-            anyhow::bail!("{option} {}: that is a folder; name a file", path.display());
-        }
-        let folder = folder_of(path);
-        if !folder.is_dir() {
-            anyhow::bail!(
-                "{option} {}: the folder {} does not exist (echosurf does not create it)",
-                path.display(),
-                folder.display()
-            );
+        match &destination {
+            Destination::Direct(device) => {
+                std::fs::OpenOptions::new()
+                    .append(true)
+                    .open(device)
+                    .map_err(|e| {
+                        anyhow::anyhow!("{option} {}: cannot write to it: {e}", path.display())
+                    })?;
+            }
+            Destination::File(file) => {
+                let folder = folder_of(file);
+                if !folder.is_dir() {
+                    anyhow::bail!(
+                        "{option} {}: the folder {} does not exist (echosurf does not create it)",
+                        path.display(),
+                        folder.display()
+                    );
+                }
+                check_writable_folder(folder)
+                    .map_err(|e| anyhow::anyhow!("{option} {}: {e}", path.display()))?;
+            }
         }
         seen.push((target, option));
     }
     Ok(())
+}
+
+/// Refuses a folder echosurf cannot create files in: creates a hidden probe file there and removes it
+/// (permission bits say nothing of a read-only mount, ACLs or running as root).
+pub fn check_writable_folder(folder: &Path) -> anyhow::Result<()> {
+    let probe = folder.join(format!(".echosurf-probe-{}", std::process::id()));
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => {
+            let _ = std::fs::remove_file(&probe);
+            Ok(())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
+        Err(e) => anyhow::bail!(
+            "cannot create files in the folder {}: {e}",
+            folder.display()
+        ),
+    }
+}
+
+/// Device and inode of an existing file (links followed), which identify it whatever the path.
+type FileId = (u64, u64);
+
+fn file_id(path: &Path) -> Option<FileId> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        std::fs::metadata(path).ok().map(|m| (m.dev(), m.ino()))
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = path;
+        None
+    }
 }
 
 /// The path with links and `.`/`..` resolved; for a file not there yet, its folder's resolved path
@@ -199,7 +262,7 @@ mod tests {
         let err = check_outputs(&inputs, &[output("--out", &folder_named_ply, Holds::Mesh)])
             .unwrap_err()
             .to_string();
-        assert!(err.ends_with("that is a folder; name a file"), "{err}");
+        assert!(err.contains("that is a folder; name a file"), "{err}");
         let nowhere = dir.path().join("missing").join("mesh.ply");
         let err = check_outputs(&inputs, &[output("--out", &nowhere, Holds::Mesh)])
             .unwrap_err()
@@ -221,7 +284,7 @@ mod tests {
             assert!(refused(name, Holds::Mesh).is_ok(), "{name}");
         }
         let err = refused("m.xyz", Holds::Mesh).unwrap_err();
-        assert!(err.ends_with("must end in .ply, .stl, .obj"), "{err}");
+        assert!(err.ends_with("must end in .ply, .stl, .obj, .vtk"), "{err}");
         assert!(refused("mesh", Holds::Mesh).is_err());
         assert!(refused("view.jpg", Holds::Png).unwrap_err().contains("PNG"));
         assert!(refused("view.PNG", Holds::Png).is_ok());

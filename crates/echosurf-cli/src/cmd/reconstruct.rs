@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use echosurf::io::{ReferenceChoice, read_calibration, read_sequence, resolve_poses};
+use echosurf::io::{ReferenceChoice, resolve_poses};
 use echosurf::voxel::{
     Compounding, HoleFilling, HoleFillingElement, Interpolation, options_from_config_xml,
     reconstruct_volume, write_volume_mha,
@@ -76,8 +76,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     inputs.push(args.config.clone());
     check_outputs(&inputs, &[output("--out", &args.out, Holds::MetaImage)])?;
     let started = Instant::now();
-    let sequence = read_sequence(&args.sequence)?;
-    let calibration = read_calibration(&args.config)?;
+    let sequence = super::inputs::read_sequence(&args.sequence)?;
+    let calibration = super::inputs::read_calibration_for(&args.config, &sequence, &args.sequence)?;
     let xml = std::fs::read_to_string(&args.config)
         .with_context(|| format!("reading {}", args.config.display()))?;
     let mut options = options_from_config_xml(&xml, &args.config)?;
@@ -134,13 +134,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let progress = BarProgress::new();
     let recon_started = Instant::now();
-    let volume = reconstruct_volume(&sequence, &poses, &options, &progress)?;
+    let volume = reconstruct_volume(&sequence, &poses, &options, &progress)
+        .with_context(|| format!("reconstructing {}", args.sequence.display()))?;
     let recon_s = recon_started.elapsed().as_secs_f64();
     write_volume_mha(&args.out, &volume, !args.uncompressed)?;
 
     let s = &volume.stats;
     let n = volume.len() as f64;
-    println!(
+    outln!(
         "{}: {}x{}x{} voxels at {} mm, origin {:.4} {:.4} {:.4} mm ({} frame)",
         args.out.display(),
         volume.dims[0],
@@ -152,7 +153,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         volume.origin_mm.z,
         poses.world_frame
     );
-    println!(
+    outln!(
         "{:?} / {:?}, hole filling {}: {} frames, {} pixels; voxels hit {:.1}%, filled {:.1}%, empty {:.1}%",
         options.interpolation,
         options.compounding,
@@ -169,7 +170,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             s.accumulation_overflows
         );
     }
-    println!(
+    outln!(
         "reconstruction {:.2} s, total {:.2} s",
         recon_s,
         started.elapsed().as_secs_f64()

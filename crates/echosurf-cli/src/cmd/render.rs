@@ -114,7 +114,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let image = render_views(&mesh, &options)?;
     write_png(&args.out, &image)?;
-    println!(
+    outln!(
         "{} ({} x {} px, {} triangles)",
         args.out.display(),
         image.width,
@@ -122,10 +122,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         mesh.triangles.len()
     );
     if from_file {
-        println!("drawn in the colours the file gives its vertices (--plain ignores them)");
+        outln!("drawn in the colours the file gives its vertices (--plain ignores them)");
     }
     if let Some(path) = &args.distance_to {
-        println!(
+        outln!(
             "coloured by distance to {}: blue 0 mm to red {} mm and beyond",
             path.display(),
             args.scale_mm

@@ -44,13 +44,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.sample_bin.is_finite() && args.sample_bin >= 0.0) {
         anyhow::bail!("--sample-bin must be a size in mm >= 0");
     }
-    let sequence = io::read_sequence(&seg.sequence)?;
+    let sequence = super::inputs::read_sequence(&seg.sequence)?;
     let calibration = io::read_calibration(&seg.config)?;
     let init = match (&seg.init, seg.auto_init) {
         (Some(path), false) => InitialBand::load(path, sequence.width, sequence.height)?,
         (None, true) => InitialBand::Auto,
         _ => anyhow::bail!("give the initial band with --init FILE or ask for --auto-init"),
     };
+    // After the band: a bad band file is the more specific complaint.
+    super::inputs::check_clip(&calibration, &sequence, &seg.config, &seg.sequence)?;
     let options = ExtractOptions {
         init,
         segment: seg.options(),
@@ -74,7 +76,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let set = &prepared.samples;
     io::write_point_cloud(&args.out, &set.to_point_cloud())?;
-    print!(
+    out!(
         "wrote {} of {} samples ({} kept pixels, {} near echoes; {} world frame)",
         set.len(),
         prepared.all.len(),
@@ -83,11 +85,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         prepared.poses.world_frame
     );
     match prepared.levels {
-        Some(l) => println!(
+        Some(l) => outln!(
             "; levels: background {:.1}, boundary {:.1}, suggested iso {:.1}",
-            l.background, l.boundary, l.iso
+            l.background,
+            l.boundary,
+            l.iso
         ),
-        None => println!(),
+        None => outln!(),
     }
     Ok(())
 }

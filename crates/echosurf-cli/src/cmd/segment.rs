@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use echosurf::io::{self, ReferenceChoice};
+use echosurf::segment::bone::BoneMode;
 use echosurf::segment::{
     InitialBand, Length, SegmentOptions, default_preview_frames, segment_sequence,
     write_band_preview,
@@ -61,6 +62,11 @@ pub struct SegmentArgs {
     /// stays on it; echoes that come into view away from the band are not picked up.
     #[arg(long)]
     pub follow_band: bool,
+    /// Bone: `auto` segments a sweep made in contact with tissue whose frames show bright echoes over
+    /// an acoustic shadow as bone (the band is the bone's surface, not the tissue under the probe);
+    /// `always` or `never` decide instead. Only with the automatic first band.
+    #[arg(long, default_value = "auto", value_parser = ["auto", "always", "never"])]
+    pub bone: String,
     /// Gaussian smoothing before the gradients, in px (default 0.5 mm, 1 mm with --chain-edgels or
     /// --wall-band).
     #[arg(long, conflicts_with = "smoothing_mm")]
@@ -151,6 +157,11 @@ impl SegmentArgs {
             threshold: self.threshold,
             backward_pass: self.backward_pass || defaults.backward_pass,
             follow_band: self.follow_band,
+            bone: match self.bone.as_str() {
+                "always" => BoneMode::Always,
+                "never" => BoneMode::Never,
+                _ => BoneMode::Auto,
+            },
             ..defaults
         }
     }
@@ -164,7 +175,7 @@ impl SegmentArgs {
         echosurf::segment::BandMasks,
     )> {
         let world = world_choice(&self.world)?;
-        let sequence = io::read_sequence(&self.sequence)?;
+        let sequence = super::inputs::read_sequence(&self.sequence)?;
         let calibration = io::read_calibration(&self.config)?;
         let poses = io::resolve_poses(&sequence, Some(&calibration), world, &self.sequence)?;
         let init = match (&self.init, self.auto_init) {
@@ -172,6 +183,8 @@ impl SegmentArgs {
             (None, true) => InitialBand::Auto,
             _ => anyhow::bail!("give the initial band with --init FILE or ask for --auto-init"),
         };
+        // After the band: a bad band file is the more specific complaint.
+        super::inputs::check_clip(&calibration, &sequence, &self.config, &self.sequence)?;
         let progress = BarProgress::new();
         let masks = segment_sequence(
             &sequence,
@@ -223,7 +236,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let p = masks.parameters;
-    println!(
+    outln!(
         "segmented {} of {} frames ({} skipped), kept {:.1}% of all pixels; M = {} edgels, sigma {:.1} px, \
          band +/-{:.1} px{}; {} warning(s)",
         poses.poses.len(),

@@ -19,9 +19,12 @@ pub struct Args {
     /// Iso-level(s), comma separated; one mesh each.
     #[arg(long)]
     pub iso: String,
-    /// Output mesh (.ply, .stl or .obj). With several levels, `_iso<LEVEL>` is added before the extension.
+    /// Output mesh (.ply, .stl, .obj or .vtk). With several levels, `_iso<LEVEL>` is added before the
+    /// extension.
     #[arg(long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
     /// Lattice spacing in mm.
     #[arg(long, default_value_t = 0.5)]
     pub resolution: f64,
@@ -47,6 +50,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     // The model's own values at its centres say where each level passes.
     let values = model.values(&centres);
+    if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
+        anyhow::bail!(
+            "{}: the model's value at its centre {bad} is {}: its coefficients are out of range",
+            args.model.display(),
+            values[bad]
+        );
+    }
     let (lo, hi) = values
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
@@ -55,7 +65,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for &k in &levels {
         if !(k > lo && k < hi) {
             anyhow::bail!(
-                "--iso {k} is outside the model's values at its centres ({lo:.1} to {hi:.1}): no surface"
+                "{}: --iso {k}: level {k} never crossed: it is outside the model's values at its \
+                 centres, which span {lo:.1}..{hi:.1}, so there is no surface",
+                args.model.display()
             );
         }
     }
@@ -76,9 +88,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let several = levels.len() > 1;
     for (&k, mesh) in levels.iter().zip(&meshes) {
         let path = mesh_path(&args.out, k, several);
-        io::write_mesh(&path, mesh)?;
+        io::write_mesh_in(&path, mesh, args.space.space)?;
         let t = mesh.topology();
-        println!(
+        outln!(
             "iso {k}: {} triangles, {} component(s), {} boundary edges -> {}",
             mesh.triangles.len(),
             t.components,
@@ -87,9 +99,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     for l in &stats.levels {
-        println!(
+        outln!(
             "iso {}: vertices within {:.4} grey of the level at worst",
-            l.level, l.max_level_error
+            l.level,
+            l.max_level_error
         );
         if l.off_level_vertices > 0 {
             eprintln!(
@@ -102,7 +115,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
-    println!(
+    outln!(
         "{} field evaluations ({:.1} per triangle)",
         stats.value_evaluations + stats.gradient_evaluations,
         stats.evaluations_per_triangle()

@@ -23,3 +23,33 @@ pub fn echosurf_ok<S: AsRef<OsStr>>(args: &[S]) -> Output {
     );
     out
 }
+
+/// Simulates a small sphere sweep (96 x 80 px at 0.4 mm, 20 frames per sweep) into `dir` with `seed`
+/// and any `extra` simulate arguments; returns (sequence, calibration).
+pub fn simulate_small_sphere(
+    dir: &std::path::Path,
+    seed: &str,
+    extra: &[&str],
+) -> (std::path::PathBuf, std::path::PathBuf) {
+    let out = dir.to_str().expect("a UTF-8 test folder");
+    let mut args = vec![
+        "simulate",
+        "--phantom",
+        "sphere",
+        "--seed",
+        seed,
+        "--frames-per-sweep",
+        "20",
+        "--width",
+        "96",
+        "--height",
+        "80",
+        "--pixel-size",
+        "0.4",
+        "--out",
+        out,
+    ];
+    args.extend_from_slice(extra);
+    echosurf_ok(&args);
+    (dir.join("sim.mha"), dir.join("sim_config.xml"))
+}

@@ -208,6 +208,22 @@ pub enum FacingSide {
     Probe,
 }
 
+/// Area share (0..=1) of the mesh's largest edge-connected piece: how dominant one sheet is. `None` for
+/// a mesh without area.
+pub fn largest_piece_area_share(mesh: &Mesh) -> Option<f64> {
+    let n = mesh.vertices.len();
+    let component = mesh.triangle_components();
+    let mut area = vec![0.0f64; mesh.triangles.len()];
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        if t.iter().all(|&i| (i as usize) < n) {
+            area[component[f]] += mesh.triangle_area_mm2(*t);
+        }
+    }
+    let total: f64 = area.iter().sum();
+    let largest = area.iter().copied().fold(0.0, f64::max);
+    (total > 0.0).then(|| largest / total)
+}
+
 /// Per truth triangle, the largest |cos| between its normal and the beam of a frame that sweeps it (its
 /// centroid projects into the frame's clipped image within `max_plane_distance_mm` of the plane);
 /// `-inf` where no frame does. With [`FacingSide::Probe`], the largest `-cos` instead (the outward
@@ -841,6 +857,33 @@ mod tests {
             }
         }
         mesh
+    }
+
+    #[test]
+    fn largest_piece_share_of_two_squares() {
+        // Two separate unit-area squares scaled 1 and 2: areas 1 and 4 mm^2, share 4 / 5.
+        let square = |x0: f64, size: f64, base: u32| {
+            let v = vec![
+                DVec3::new(x0, 0.0, 0.0),
+                DVec3::new(x0 + size, 0.0, 0.0),
+                DVec3::new(x0 + size, size, 0.0),
+                DVec3::new(x0, size, 0.0),
+            ];
+            let t = vec![[base, base + 1, base + 2], [base, base + 2, base + 3]];
+            (v, t)
+        };
+        let (mut vertices, mut triangles) = square(0.0, 1.0, 0);
+        let (v2, t2) = square(5.0, 2.0, 4);
+        vertices.extend(v2);
+        triangles.extend(t2);
+        let mesh = Mesh {
+            vertices,
+            triangles,
+            ..Default::default()
+        };
+        let share = largest_piece_area_share(&mesh).unwrap();
+        assert!((share - 0.8).abs() < 1e-12, "{share}");
+        assert_eq!(largest_piece_area_share(&Mesh::default()), None);
     }
 
     #[test]

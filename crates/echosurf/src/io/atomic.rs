@@ -24,12 +24,107 @@ fn in_flight() -> MutexGuard<'static, Vec<PathBuf>> {
 
 const TEMP_MARKER: &str = ".echosurf-tmp-";
 
-/// Writes `path` atomically: `fill` writes the whole content into a buffered temporary file.
+/// Where an output's bytes go, once links are followed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Destination {
+    /// A regular file (existing or not yet there), written through a temporary file and a rename.
+    File(PathBuf),
+    /// A character device such as `/dev/null`, or one of this process's open streams (`/dev/stdout`,
+    /// `/dev/fd/N`, `/proc/self/fd/N`): written to directly (appended to), never replaced.
+    Direct(PathBuf),
+}
+
+/// This process's own open files by number: the kernel's links there name pipes and terminals that
+/// cannot be followed as paths, and replacing what they point at would pull a file from under the shell.
+fn is_own_stream(path: &Path) -> bool {
+    let text = path.to_string_lossy();
+    matches!(text.as_ref(), "/dev/stdout" | "/dev/stderr")
+        || ["/dev/fd/", "/proc/self/fd/", "/proc/thread-self/fd/"]
+            .iter()
+            .any(|prefix| text.starts_with(prefix))
+}
+
+/// Where writing `path` puts the bytes: a symbolic link is followed to its target (which is then
+/// written atomically; a link whose target is not there yet names the file to create); a character
+/// device or an open stream of this process (`/dev/stdout`) is written directly; a folder, FIFO,
+/// socket or block device is refused.
+pub fn destination(path: &Path) -> Result<Destination> {
+    let mut target = path.to_path_buf();
+    // Follow a chain of links by hand: `canonicalize` fails on a link whose target does not exist yet.
+    for _ in 0..40 {
+        if is_own_stream(&target) {
+            return Ok(Destination::Direct(target));
+        }
+        let Ok(meta) = std::fs::symlink_metadata(&target) else {
+            return Ok(Destination::File(target));
+        };
+        if meta.file_type().is_symlink() {
+            let link = std::fs::read_link(&target).map_err(|e| Error::io(path, e))?;
+            target = match target.parent() {
+                Some(dir) if link.is_relative() => dir.join(link),
+                _ => link,
+            };
+            continue;
+        }
+        return classify(path, target, &meta);
+    }
+    Err(Error::InvalidInput(format!(
+        "{}: too many levels of symbolic links",
+        path.display()
+    )))
+}
+
+fn classify(path: &Path, target: PathBuf, meta: &std::fs::Metadata) -> Result<Destination> {
+    let kind = meta.file_type();
+    if kind.is_file() {
+        return Ok(Destination::File(target));
+    }
+    if kind.is_dir() {
+        return Err(Error::InvalidInput(format!(
+            "{}: that is a folder; name a file",
+            path.display()
+        )));
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if kind.is_char_device() {
+            return Ok(Destination::Direct(target));
+        }
+        let what = if kind.is_block_device() {
+            "a block device"
+        } else if kind.is_fifo() {
+            "a named pipe (FIFO)"
+        } else if kind.is_socket() {
+            "a socket"
+        } else {
+            "a special file"
+        };
+        Err(Error::InvalidInput(format!(
+            "{}: that is {what}, not a regular file; echosurf writes only regular files and \
+             character devices such as /dev/null",
+            path.display()
+        )))
+    }
+    #[cfg(not(unix))]
+    Err(Error::InvalidInput(format!(
+        "{}: not a regular file",
+        path.display()
+    )))
+}
+
+/// Writes `path` atomically: `fill` writes the whole content into a buffered temporary file, renamed
+/// over the destination when complete. A symbolic link is followed (its target is replaced, the link
+/// stays); a character device is written directly; other special files are refused ([`destination`]).
 pub fn write_atomic<F>(path: &Path, fill: F) -> Result<()>
 where
     F: FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 {
-    let tmp = temp_path(path);
+    let target = match destination(path)? {
+        Destination::File(target) => target,
+        Destination::Direct(device) => return write_direct(path, &device, fill),
+    };
+    let tmp = temp_path(&target);
     remove_stale_temp_files(tmp.parent().unwrap_or(Path::new(".")));
     in_flight().push(tmp.clone());
     let result = (|| -> std::io::Result<()> {
@@ -47,12 +142,27 @@ where
         let _ = std::fs::remove_file(&tmp);
         return Err(Error::io(path, e));
     }
-    let renamed = std::fs::rename(&tmp, path).map_err(|e| {
+    let renamed = std::fs::rename(&tmp, &target).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
         Error::io(path, e)
     });
     drop(registry);
     renamed
+}
+
+/// Writes straight into a device or stream (no temporary file: it cannot be replaced). Appends, so
+/// `>> log` behind `/dev/stdout` keeps what was there.
+fn write_direct<F>(path: &Path, device: &Path, fill: F) -> Result<()>
+where
+    F: FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
+{
+    let result = (|| -> std::io::Result<()> {
+        let file = std::fs::OpenOptions::new().append(true).open(device)?;
+        let mut writer = BufWriter::with_capacity(1 << 16, file);
+        fill(&mut writer)?;
+        writer.flush()
+    })();
+    result.map_err(|e| Error::io(path, e))
 }
 
 /// Removes this process's unfinished temporary files and returns how many there were. For a Ctrl-C
@@ -206,6 +316,49 @@ mod tests {
         write_bytes_atomic(&path, b"a").unwrap();
         let tmp = temp_path(&path);
         assert!(!in_flight().contains(&tmp));
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_link_is_followed_and_its_target_replaced_a_device_written_directly() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("target.bin");
+        std::fs::write(&target, b"old").unwrap();
+        let link = dir.path().join("link.bin");
+        std::os::unix::fs::symlink("target.bin", &link).unwrap();
+        write_bytes_atomic(&link, b"new").unwrap();
+        assert!(
+            std::fs::symlink_metadata(&link)
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
+        assert_eq!(std::fs::read(&target).unwrap(), b"new");
+        // A dangling link names the file to create.
+        let dangling = dir.path().join("dangling.bin");
+        std::os::unix::fs::symlink("made.bin", &dangling).unwrap();
+        write_bytes_atomic(&dangling, b"made").unwrap();
+        assert_eq!(std::fs::read(dir.path().join("made.bin")).unwrap(), b"made");
+        let null = Path::new("/dev/null");
+        if null.exists() {
+            assert_eq!(destination(null).unwrap(), Destination::Direct(null.into()));
+            write_bytes_atomic(null, b"gone").unwrap();
+            assert_eq!(
+                destination(Path::new("/dev/stdout")).unwrap(),
+                Destination::Direct("/dev/stdout".into())
+            );
+            use std::os::unix::fs::FileTypeExt;
+            assert!(
+                std::fs::metadata(null)
+                    .unwrap()
+                    .file_type()
+                    .is_char_device()
+            );
+        }
+        let err = write_bytes_atomic(dir.path(), b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("folder"), "{err}");
     }
 
     #[test]

@@ -1,10 +1,19 @@
-//! Mesh files: PLY (binary little-endian with vertex normals), STL (binary), OBJ; chosen by extension.
+//! Mesh files: PLY (binary little-endian with vertex normals), STL (binary), OBJ, legacy VTK polydata;
+//! chosen by extension.
 //!
 //! Readers accept what other tools write: PLY in any encoding (through the one parser in
 //! [`crate::io::ply`]), binary and ASCII STL (binary files whose header starts with `solid`, like the fCal
-//! CAD model, are recognised by their exact size), OBJ with `v`/`vn`/`f` and polygons. Polygons are
-//! fan-triangulated. STL is a triangle soup, so its corners are welded by exact coordinate equality to give
-//! the mesh a topology. Bad indices, non-finite coordinates and truncated data are format errors.
+//! CAD model, are recognised by their exact size), OBJ with `v`/`vn`/`f` and polygons, VTK as
+//! [`crate::io::vtk`] describes. Polygons are fan-triangulated. STL is a triangle soup, so its corners
+//! are welded by exact coordinate equality to give the mesh a topology. Bad indices, non-finite
+//! coordinates and truncated data are format errors.
+//!
+//! Every mesh written states its coordinate system the way 3D Slicer writes and reads it: `SPACE=RAS`
+//! or `SPACE=LPS` in the PLY comment, the STL 80-byte header, the OBJ comment and the VTK header line.
+//! echosurf works in the tracking frame's own coordinates, which Slicer shows as RAS (see
+//! `docs/decisions/0029-mesh-coordinate-space.md`); a file tagged LPS has x and y negated on the way
+//! in and out. A file without a tag is taken as the working (RAS) coordinates: that is what every
+//! echosurf file before the tag, and the simulator's ground truths, hold.
 
 use std::collections::HashMap;
 use std::io::Write;
@@ -21,10 +30,11 @@ enum MeshFormat {
     Ply,
     Stl,
     Obj,
+    Vtk,
 }
 
 /// The file name extensions a mesh is read from and written to (case-insensitive).
-pub const MESH_EXTENSIONS: [&str; 3] = ["ply", "stl", "obj"];
+pub const MESH_EXTENSIONS: [&str; 4] = ["ply", "stl", "obj", "vtk"];
 
 fn format_of(path: &Path) -> Option<MeshFormat> {
     let ext = path.extension()?.to_string_lossy().to_ascii_lowercase();
@@ -32,25 +42,145 @@ fn format_of(path: &Path) -> Option<MeshFormat> {
         "ply" => Some(MeshFormat::Ply),
         "stl" => Some(MeshFormat::Stl),
         "obj" => Some(MeshFormat::Obj),
+        "vtk" => Some(MeshFormat::Vtk),
         _ => None,
     }
 }
 
-/// Reads a `.ply`, `.stl` or `.obj` mesh (by extension, case-insensitive).
+/// The anatomical coordinate system a mesh file's numbers are in, as 3D Slicer names it: RAS (+x
+/// right, +y anterior, +z superior) or LPS (+x left, +y posterior: x and y negated). echosurf's working
+/// coordinates are RAS: the tracking frame's numbers as Slicer shows them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "UPPERCASE")]
+pub enum Space {
+    /// The working coordinates unchanged.
+    #[default]
+    Ras,
+    /// x and y negated (a half turn about z: the winding of triangles stays valid).
+    Lps,
+}
+
+impl Space {
+    /// `RAS` or `LPS`, the spelling of the tag.
+    pub fn name(self) -> &'static str {
+        match self {
+            Space::Ras => "RAS",
+            Space::Lps => "LPS",
+        }
+    }
+
+    /// The tag Slicer writes and looks for: `SPACE=RAS` or `SPACE=LPS`.
+    pub fn tag(self) -> &'static str {
+        match self {
+            Space::Ras => "SPACE=RAS",
+            Space::Lps => "SPACE=LPS",
+        }
+    }
+
+    /// `ras` or `lps` (any case).
+    pub fn parse(text: &str) -> Option<Space> {
+        match text.trim().to_ascii_lowercase().as_str() {
+            "ras" => Some(Space::Ras),
+            "lps" => Some(Space::Lps),
+            _ => None,
+        }
+    }
+
+    /// The space a tag in `text` names, as Slicer finds it: the first of `SPACE=RAS`, `SPACE=LPS`
+    /// anywhere in the text (RAS looked for first, as Slicer does).
+    pub fn find_tag(text: &[u8]) -> Option<Space> {
+        let has = |tag: &str| text.windows(tag.len()).any(|w| w == tag.as_bytes());
+        if has(Space::Ras.tag()) {
+            Some(Space::Ras)
+        } else if has(Space::Lps.tag()) {
+            Some(Space::Lps)
+        } else {
+            None
+        }
+    }
+
+    /// `mesh` (in working RAS coordinates) in this space, or back: the change is its own inverse.
+    pub fn convert(self, mesh: &Mesh) -> Mesh {
+        match self {
+            Space::Ras => mesh.clone(),
+            Space::Lps => {
+                let flip = |v: &DVec3| DVec3::new(-v.x, -v.y, v.z);
+                Mesh {
+                    vertices: mesh.vertices.iter().map(flip).collect(),
+                    normals: mesh.normals.iter().map(flip).collect(),
+                    triangles: mesh.triangles.clone(),
+                }
+            }
+        }
+    }
+}
+
+/// The first line of what echosurf writes into a mesh's comment or header: what it is and its space.
+fn header_text(space: Space) -> String {
+    format!("echosurf mesh, mm. {}", space.tag())
+}
+
+/// Reads a `.ply`, `.stl`, `.obj` or `.vtk` mesh (by extension, case-insensitive), in working (RAS)
+/// coordinates: a file tagged `SPACE=LPS` has its x and y negated.
 pub fn read_mesh(path: &Path) -> Result<Mesh> {
+    read_mesh_and_space(path).map(|(mesh, _)| mesh)
+}
+
+/// [`read_mesh`], and the space the file's tag names (`None`: no tag, read as RAS).
+pub fn read_mesh_and_space(path: &Path) -> Result<(Mesh, Option<Space>)> {
     let format = format_of(path).ok_or_else(|| {
         Error::format(
             path,
             FormatProblem::Unsupported,
-            "unknown mesh file extension (expected .ply, .stl or .obj)",
+            "unknown mesh file extension (expected .ply, .stl, .obj or .vtk)",
         )
     })?;
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let (mesh, space) = parse_mesh(path, format, &bytes)?;
+    Ok((space.unwrap_or_default().convert(&mesh), space))
+}
+
+/// The mesh as stored in `bytes` (no coordinate change) and the space its tag names.
+fn parse_mesh(path: &Path, format: MeshFormat, bytes: &[u8]) -> Result<(Mesh, Option<Space>)> {
     match format {
-        MeshFormat::Ply => parse_ply_mesh(path, &bytes),
-        MeshFormat::Stl => parse_stl(path, &bytes),
-        MeshFormat::Obj => parse_obj(path, &bytes),
+        MeshFormat::Ply => Ok((parse_ply_mesh(path, bytes)?, ply_space(bytes))),
+        MeshFormat::Stl => Ok((parse_stl(path, bytes)?, stl_space(bytes))),
+        MeshFormat::Obj => Ok((parse_obj(path, bytes)?, obj_space(bytes))),
+        MeshFormat::Vtk => {
+            let vtk = crate::io::vtk::read(path, bytes)?;
+            let space = Space::find_tag(vtk.header.as_bytes());
+            Ok((vtk.mesh, space))
+        }
     }
+}
+
+/// The tag in a PLY header's first comment that has one.
+fn ply_space(bytes: &[u8]) -> Option<Space> {
+    bytes
+        .split(|&b| b == b'\n')
+        .take_while(|line| line.trim_ascii() != b"end_header")
+        .filter(|line| line.starts_with(b"comment") || line.starts_with(b"obj_info"))
+        .find_map(Space::find_tag)
+}
+
+/// The tag in a binary STL's 80-byte header, or in an ASCII STL's `solid` line.
+fn stl_space(bytes: &[u8]) -> Option<Space> {
+    let header = if looks_like_ascii_stl(bytes) {
+        bytes.split(|&b| b == b'\n').next().unwrap_or_default()
+    } else {
+        &bytes[..bytes.len().min(80)]
+    };
+    Space::find_tag(header)
+}
+
+/// The tag in the comment lines an OBJ file opens with.
+fn obj_space(bytes: &[u8]) -> Option<Space> {
+    bytes
+        .split(|&b| b == b'\n')
+        .map(<[u8]>::trim_ascii)
+        .filter(|line| !line.is_empty())
+        .take_while(|line| line.starts_with(b"#"))
+        .find_map(Space::find_tag)
 }
 
 /// The colours a PLY mesh gives its vertices (`red green blue` vertex properties, 0-255), in the vertex
@@ -78,19 +208,27 @@ pub fn read_vertex_colours(path: &Path) -> Result<Option<Vec<[u8; 3]>>> {
 }
 
 /// Writes a mesh as `.ply` (binary little-endian, float vertices, vertex normals when the mesh has them),
-/// `.stl` (binary, facet normals from the geometry) or `.obj` (`v`, `vn`, `f`), atomically.
+/// `.stl` (binary, facet normals from the geometry), `.obj` (`v`, `vn`, `f`) or `.vtk` (binary legacy
+/// polydata), atomically, in working coordinates tagged `SPACE=RAS`.
 pub fn write_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
+    write_mesh_in(path, mesh, Space::Ras)
+}
+
+/// [`write_mesh`] in `space`: the working (RAS) `mesh` converted to it, and tagged with it.
+pub fn write_mesh_in(path: &Path, mesh: &Mesh, space: Space) -> Result<()> {
     let format = format_of(path).ok_or_else(|| {
         Error::InvalidInput(format!(
-            "{}: unknown mesh file extension (expected .ply, .stl or .obj)",
+            "{}: unknown mesh file extension (expected .ply, .stl, .obj or .vtk)",
             path.display()
         ))
     })?;
     check_mesh(path, mesh)?;
+    let mesh = &space.convert(mesh);
     match format {
-        MeshFormat::Ply => write_ply(path, mesh),
-        MeshFormat::Stl => write_stl(path, mesh),
-        MeshFormat::Obj => write_obj(path, mesh),
+        MeshFormat::Ply => write_ply_rows(path, mesh, None, space),
+        MeshFormat::Stl => write_stl(path, mesh, space),
+        MeshFormat::Obj => write_obj(path, mesh, space),
+        MeshFormat::Vtk => crate::io::vtk::write(path, mesh, &header_text(space)),
     }
 }
 
@@ -133,10 +271,6 @@ fn has_normals(mesh: &Mesh) -> bool {
     !mesh.normals.is_empty() && mesh.normals.len() == mesh.vertices.len()
 }
 
-fn write_ply(path: &Path, mesh: &Mesh) -> Result<()> {
-    write_ply_rows(path, mesh, None)
-}
-
 /// Per-vertex extras of a PLY mesh: one `float` value and an sRGB colour (`uchar red green blue`,
 /// which MeshLab, ParaView and 3D Slicer show).
 struct VertexValues<'a> {
@@ -146,13 +280,14 @@ struct VertexValues<'a> {
 }
 
 /// Writes a binary PLY mesh whose vertices also carry `float NAME` and a colour, e.g. an error map
-/// (each vertex's distance to a ground truth, coloured on a scale).
+/// (each vertex's distance to a ground truth, coloured on a scale), in `space`.
 pub fn write_ply_with_vertex_values(
     path: &Path,
     mesh: &Mesh,
     name: &str,
     values: &[f32],
     colours: &[[u8; 3]],
+    space: Space,
 ) -> Result<()> {
     let n = mesh.vertices.len();
     if values.len() != n || colours.len() != n {
@@ -173,19 +308,28 @@ pub fn write_ply_with_vertex_values(
     check_mesh(path, mesh)?;
     write_ply_rows(
         path,
-        mesh,
+        &space.convert(mesh),
         Some(VertexValues {
             name,
             values,
             colours,
         }),
+        space,
     )
 }
 
-fn write_ply_rows(path: &Path, mesh: &Mesh, extra: Option<VertexValues>) -> Result<()> {
+fn write_ply_rows(
+    path: &Path,
+    mesh: &Mesh,
+    extra: Option<VertexValues>,
+    space: Space,
+) -> Result<()> {
     let normals = has_normals(mesh);
-    let mut header =
-        String::from("ply\nformat binary_little_endian 1.0\ncomment echosurf mesh, mm\n");
+    // Slicer writes the tag as a comment of its own.
+    let mut header = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment echosurf mesh, mm\ncomment {}\n",
+        space.tag()
+    );
     header.push_str(&format!(
         "element vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
         mesh.vertices.len()
@@ -235,12 +379,12 @@ fn write_f32s(w: &mut impl Write, values: &[f64]) -> std::io::Result<()> {
     Ok(())
 }
 
-fn write_stl(path: &Path, mesh: &Mesh) -> Result<()> {
+fn write_stl(path: &Path, mesh: &Mesh, space: Space) -> Result<()> {
     crate::io::atomic::write_atomic(path, |w| {
         // The header must not start with "solid", or readers may take the file for ASCII STL.
         let mut header = [b' '; 80];
-        let text = b"echosurf binary STL, mm";
-        header[..text.len()].copy_from_slice(text);
+        let text = header_text(space);
+        header[..text.len()].copy_from_slice(text.as_bytes());
         w.write_all(&header)?;
         w.write_all(&(mesh.triangles.len() as u32).to_le_bytes())?;
         for &t in &mesh.triangles {
@@ -256,10 +400,10 @@ fn write_stl(path: &Path, mesh: &Mesh) -> Result<()> {
     })
 }
 
-fn write_obj(path: &Path, mesh: &Mesh) -> Result<()> {
+fn write_obj(path: &Path, mesh: &Mesh, space: Space) -> Result<()> {
     let normals = has_normals(mesh);
     crate::io::atomic::write_atomic(path, |w| {
-        writeln!(w, "# echosurf mesh, mm")?;
+        writeln!(w, "# {}", header_text(space))?;
         // `{}` prints the shortest decimal that reads back to the same f64, so OBJ round-trips exactly.
         for v in &mesh.vertices {
             writeln!(w, "v {} {} {}", v.x, v.y, v.z)?;
@@ -282,7 +426,7 @@ fn write_obj(path: &Path, mesh: &Mesh) -> Result<()> {
 }
 
 /// Appends the fan triangulation of a polygon, after checking every index.
-fn push_polygon(
+pub(crate) fn push_polygon(
     path: &Path,
     what: &str,
     polygon: &[u32],
@@ -386,7 +530,7 @@ fn parse_ply_mesh(path: &Path, bytes: &[u8]) -> Result<Mesh> {
 }
 
 /// Normalised normals, or none at all if any is zero or not finite (a mesh has all or none).
-fn unit_normals(normals: impl Iterator<Item = DVec3>) -> Vec<DVec3> {
+pub(crate) fn unit_normals(normals: impl Iterator<Item = DVec3>) -> Vec<DVec3> {
     let mut out = Vec::new();
     for n in normals {
         match n.try_normalize() {
@@ -739,6 +883,10 @@ mod tests {
             "OBJ keeps full f64 precision"
         );
 
+        let vtk = dir.path().join("m.vtk");
+        write_mesh(&vtk, &mesh).unwrap();
+        assert_eq!(read_mesh(&vtk).unwrap(), to_f32(&mesh));
+
         let stl = dir.path().join("m.stl");
         write_mesh(&stl, &mesh).unwrap();
         let back = read_mesh(&stl).unwrap();
@@ -770,7 +918,7 @@ mod tests {
             normals: vec![],
             ..mesh.clone()
         };
-        for p in [&ply, &obj] {
+        for p in [&ply, &obj, &vtk] {
             write_mesh(p, &bare).unwrap();
             assert!(read_mesh(p).unwrap().normals.is_empty());
             write_mesh(p, &Mesh::default()).unwrap();
@@ -786,7 +934,8 @@ mod tests {
         let values: Vec<f32> = (0..n).map(|i| 0.25 * i as f32).collect();
         let colours: Vec<[u8; 3]> = (0..n).map(|i| [i as u8, 100, 255 - i as u8]).collect();
         let path = dir.path().join("map.ply");
-        write_ply_with_vertex_values(&path, &mesh, "distance_mm", &values, &colours).unwrap();
+        write_ply_with_vertex_values(&path, &mesh, "distance_mm", &values, &colours, Space::Ras)
+            .unwrap();
         // Still a mesh to every reader, with the values and colours as vertex properties.
         assert_eq!(read_mesh(&path).unwrap(), to_f32(&mesh));
         let cloud = crate::io::read_point_cloud(&path).unwrap();
@@ -817,7 +966,9 @@ mod tests {
             ("red", values.as_slice(), colours.as_slice()),
             ("two words", values.as_slice(), colours.as_slice()),
         ] {
-            assert!(write_ply_with_vertex_values(&refused, &mesh, name, values, colours).is_err());
+            let written =
+                write_ply_with_vertex_values(&refused, &mesh, name, values, colours, Space::Lps);
+            assert!(written.is_err());
             assert!(!refused.exists());
         }
     }
@@ -869,6 +1020,9 @@ mod tests {
         let ply_head = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
                         property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n\
                         0 0 0\n1 0 0\n0 1 0\n";
+        let vtk_head = "# vtk DataFile Version 4.2\nt\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n\
+                        0 0 0\n1 0 0\n0 1 0\n"
+            .to_string();
         let mut stl_bin = vec![0u8; 80];
         stl_bin.extend_from_slice(&1000u32.to_le_bytes());
         stl_bin.extend_from_slice(&[0u8; 50]);
@@ -929,6 +1083,48 @@ mod tests {
             ("m.obj", b"v 0 nan 0\n".to_vec(), FormatProblem::BadValue),
             ("n.obj", b"v 0 0\n".to_vec(), FormatProblem::BadValue),
             ("o.off", b"OFF\n".to_vec(), FormatProblem::Unsupported),
+            (
+                "p.vtk",
+                vtk_head
+                    .replace("POINTS 3", "POINTS 3000000000")
+                    .into_bytes(),
+                FormatProblem::Truncated,
+            ),
+            (
+                "q.vtk",
+                format!("{vtk_head}POLYGONS 1 4\n3 0 1 3\n").into_bytes(),
+                FormatProblem::BadValue,
+            ),
+            (
+                "r.vtk",
+                format!("{vtk_head}POLYGONS 1 4\n3 0 1\n").into_bytes(),
+                FormatProblem::Truncated,
+            ),
+            (
+                "s.vtk",
+                format!("{vtk_head}POLYGONS 2 4\n3 0 1 2\n").into_bytes(),
+                FormatProblem::SizeMismatch,
+            ),
+            (
+                "t.vtk",
+                vtk_head
+                    .replace("POLYDATA", "UNSTRUCTURED_GRID")
+                    .into_bytes(),
+                FormatProblem::Unsupported,
+            ),
+            (
+                "u.vtk",
+                vtk_head.replace("1 0 0", "1 nan 0").into_bytes(),
+                FormatProblem::BadValue,
+            ),
+            (
+                "v.vtk",
+                b"# vtk DataFile Version 4.2\nx\nBINARY\nDATASET POLYDATA\nPOINTS 9 float\n\0\0"
+                    .to_vec(),
+                FormatProblem::Truncated,
+            ),
+            ("w.vtk", vtk_head.into_bytes(), FormatProblem::MissingField),
+            ("x.vtk", b"solid\n".to_vec(), FormatProblem::Unsupported),
         ];
         for (name, bytes, problem) in cases {
             let path = dir.path().join(name);
@@ -961,11 +1157,12 @@ mod tests {
         use rand::{Rng, SeedableRng};
         let dir = tempfile::tempdir().unwrap();
         let mut originals = Vec::new();
-        for name in ["m.ply", "m.stl", "m.obj"] {
+        for name in ["m.ply", "m.stl", "m.obj", "m.vtk"] {
             let path = dir.path().join(name);
             write_mesh(&path, &octahedron()).unwrap();
             originals.push((name, std::fs::read(&path).unwrap()));
         }
+        originals.push(("a.vtk", ASCII_VTK_5.to_vec()));
         originals.push((
             "a.ply",
             b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
@@ -1002,6 +1199,7 @@ property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_he
                 let result = match name.rsplit('.').next() {
                     Some("ply") => parse_ply_mesh(path, &bytes),
                     Some("stl") => parse_stl(path, &bytes),
+                    Some("vtk") => crate::io::vtk::read(path, &bytes).map(|v| v.mesh),
                     _ => parse_obj(path, &bytes),
                 };
                 match result {
@@ -1018,6 +1216,142 @@ property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_he
                     Err(e) => assert!(e.problem().is_some(), "{e}"),
                 }
                 let _ = crate::io::ply::PlyFile::parse(path, &bytes);
+            }
+        }
+    }
+
+    /// A version-5 ASCII VTK file as VTK 9 writes it: offsets and connectivity, a quad and a strip.
+    const ASCII_VTK_5: &[u8] = b"# vtk DataFile Version 5.1\nvtk output SPACE=LPS\nASCII\n\
+DATASET POLYDATA\nPOINTS 5 double\n0 0 0 1 0 0 1 1 0\n0 1 0 2 1 0\n\n\
+POLYGONS 2 4\nOFFSETS vtktypeint64\n0 4\nCONNECTIVITY vtktypeint64\n0 1 2 3\n\
+TRIANGLE_STRIPS 2 4\nOFFSETS vtktypeint64\n0 4\nCONNECTIVITY vtktypeint64\n1 4 2 3\n\
+CELL_DATA 3\nFIELD FieldData 1\n";
+
+    #[test]
+    fn foreign_vtk_variants_are_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("v5.vtk");
+        std::fs::write(&path, ASCII_VTK_5).unwrap();
+        let (m, space) = read_mesh_and_space(&path).unwrap();
+        assert_eq!(space, Some(Space::Lps));
+        // Quad fanned, strip split with alternating winding; LPS read into RAS.
+        assert_eq!(
+            m.triangles,
+            vec![[0, 1, 2], [0, 2, 3], [1, 4, 2], [2, 4, 3]]
+        );
+        assert_eq!(m.vertices[1], DVec3::new(-1.0, 0.0, 0.0));
+        assert_eq!(m.vertices[4], DVec3::new(-2.0, -1.0, 0.0));
+        // Version 4 ASCII with lines, vertices and normals; untagged: read as RAS.
+        let path = dir.path().join("v4.vtk");
+        std::fs::write(
+            &path,
+            "# vtk DataFile Version 3.0\r\nno tag\r\nASCII\r\nDATASET POLYDATA\r\n\
+             POINTS 3 float\r\n0 0 0 1 0 0 0 1 0\r\nVERTICES 1 2\r\n1 0\r\nLINES 1 3\r\n2 0 1\r\n\
+             POLYGONS 1 4\r\n3 0 1 2\r\nPOINT_DATA 3\r\nNORMALS n float\r\n0 0 2 0 0 1 0 0 1\r\n",
+        )
+        .unwrap();
+        let (m, space) = read_mesh_and_space(&path).unwrap();
+        assert_eq!(space, None);
+        assert_eq!(m.triangles, vec![[0, 1, 2]]);
+        assert_eq!(m.vertices[1], DVec3::X);
+        assert_eq!(m.normals, vec![DVec3::Z; 3]);
+    }
+
+    #[test]
+    fn every_format_round_trips_its_space_tag() {
+        let dir = tempfile::tempdir().unwrap();
+        let mesh = octahedron();
+        for ext in MESH_EXTENSIONS {
+            for space in [Space::Ras, Space::Lps] {
+                let path = dir.path().join(format!("m_{}.{ext}", space.name()));
+                write_mesh_in(&path, &mesh, space).unwrap();
+                let (back, tag) = read_mesh_and_space(&path).unwrap();
+                assert_eq!(tag, Some(space), "{ext}");
+                let want = if ext == "obj" {
+                    mesh.clone()
+                } else {
+                    to_f32(&mesh)
+                };
+                if ext == "stl" {
+                    assert_eq!(back.vertices.len(), 6);
+                    let (lo, hi) = back.bounds().unwrap();
+                    assert_eq!((lo, hi), want.bounds().unwrap(), "{ext} {space:?}");
+                } else {
+                    assert_eq!(back, want, "{ext} {space:?}");
+                }
+                // The tag is where Slicer looks: the file's text holds it once.
+                let bytes = std::fs::read(&path).unwrap();
+                assert_eq!(Space::find_tag(&bytes), Some(space));
+            }
+        }
+        // The coloured PLY too.
+        let n = mesh.vertices.len();
+        let path = dir.path().join("map.ply");
+        write_ply_with_vertex_values(
+            &path,
+            &mesh,
+            "d",
+            &vec![0.0; n],
+            &vec![[0; 3]; n],
+            Space::Lps,
+        )
+        .unwrap();
+        let (back, tag) = read_mesh_and_space(&path).unwrap();
+        assert_eq!((back, tag), (to_f32(&mesh), Some(Space::Lps)));
+    }
+
+    #[test]
+    fn lps_and_ras_files_differ_in_the_tag_and_the_signs_of_x_and_y_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let mesh = octahedron();
+        for ext in MESH_EXTENSIONS {
+            let ras_path = dir.path().join(format!("ras.{ext}"));
+            let lps_path = dir.path().join(format!("lps.{ext}"));
+            write_mesh_in(&ras_path, &mesh, Space::Ras).unwrap();
+            write_mesh_in(&lps_path, &mesh, Space::Lps).unwrap();
+            let ras = std::fs::read(&ras_path).unwrap();
+            let lps = std::fs::read(&lps_path).unwrap();
+            // As stored: x and y negated, z, triangles and everything else the same.
+            let format = format_of(&ras_path).unwrap();
+            let (stored_ras, _) = parse_mesh(&ras_path, format, &ras).unwrap();
+            let (stored_lps, _) = parse_mesh(&lps_path, format, &lps).unwrap();
+            assert_eq!(Space::Lps.convert(&stored_ras), stored_lps, "{ext}");
+            // Byte for byte: with the tag put back, binary files differ only in sign bits (x, y and
+            // their normals) and OBJ only in the minus signs of the first two numbers on a line.
+            let mut lps = lps;
+            let tag_at = lps.windows(9).position(|w| w == b"SPACE=LPS").unwrap();
+            lps[tag_at..tag_at + 9].copy_from_slice(b"SPACE=RAS");
+            assert_eq!(ras.len(), lps.len(), "{ext}");
+            if ext == "obj" {
+                let (r, l) = (
+                    String::from_utf8(ras).unwrap(),
+                    String::from_utf8(lps).unwrap(),
+                );
+                for (a, b) in r.lines().zip(l.lines()) {
+                    let (a, b): (Vec<&str>, Vec<&str>) =
+                        (a.split(' ').collect(), b.split(' ').collect());
+                    for (k, (x, y)) in a.iter().zip(&b).enumerate() {
+                        if (k == 1 || k == 2) && (a[0] == "v" || a[0] == "vn") {
+                            let negated = x
+                                .strip_prefix('-')
+                                .map(str::to_owned)
+                                .unwrap_or(format!("-{x}"));
+                            assert_eq!(*y, negated, "{ext}: {a:?} {b:?}");
+                        } else {
+                            assert_eq!(x, y, "{ext}");
+                        }
+                    }
+                }
+            } else {
+                let differing: Vec<usize> = (0..ras.len()).filter(|&i| ras[i] != lps[i]).collect();
+                assert!(!differing.is_empty(), "{ext}");
+                for i in differing {
+                    assert_eq!(
+                        ras[i] ^ lps[i],
+                        0x80,
+                        "{ext}: byte {i} differs beyond a sign bit"
+                    );
+                }
             }
         }
     }

@@ -1,5 +1,5 @@
 //! Reading and writing what the field stores: PLUS tracked sequences (`.mha`, `.mhd` + `.raw`/`.zraw`,
-//! `.igs.nrrd`), PLUS device-set XML (calibration), meshes (PLY/STL/OBJ) and point clouds (PLY).
+//! `.igs.nrrd`), PLUS device-set XML (calibration), meshes (PLY/STL/OBJ/VTK) and point clouds (PLY).
 //! Everything written goes through [`atomic`] so an interrupted run never leaves a half-written file.
 
 pub mod atomic;
@@ -12,13 +12,17 @@ pub mod pose;
 mod seq_decode;
 pub mod sequence;
 pub mod summary;
+pub(crate) mod vtk;
 
 pub use summary::{SequenceSummary, summarise};
 
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
-pub use mesh_io::{read_mesh, read_vertex_colours, write_mesh, write_ply_with_vertex_values};
+pub use mesh_io::{
+    Space, read_mesh, read_mesh_and_space, read_vertex_colours, write_mesh, write_mesh_in,
+    write_ply_with_vertex_values,
+};
 pub use plus_config::{read_calibration, write_calibration};
 pub use ply::{PointCloud, read_point_cloud, write_point_cloud};
 pub use pose::{

@@ -36,16 +36,126 @@ pub fn read_calibration(path: &Path) -> Result<Calibration> {
     parse_calibration(&text, path)
 }
 
-/// Parses device-set XML text; `path` names the source in errors.
-pub fn parse_calibration(text: &str, path: &Path) -> Result<Calibration> {
-    let doc = roxmltree::Document::parse(text).map_err(|e| {
+/// Deepest element nesting accepted in an XML file. PLUS device sets nest about 6 deep; the limit keeps
+/// a crafted file from exhausting the stack of the tree walks.
+pub const MAX_XML_DEPTH: usize = 256;
+
+/// Most XML nodes accepted (elements, text, comments): device sets hold a few hundred.
+const MAX_XML_NODES: u32 = 100_000;
+
+/// Parses XML text with bounds: element nesting at most [`MAX_XML_DEPTH`] (checked by a scan before
+/// the parser builds anything) and at most 100,000 nodes. `path` names the file in errors.
+pub fn parse_xml<'a>(text: &'a str, path: &Path) -> Result<roxmltree::Document<'a>> {
+    if let Some((depth, line)) = nesting_beyond(text, MAX_XML_DEPTH) {
+        return Err(Error::format(
+            path,
+            FormatProblem::Corrupt,
+            format!(
+                "XML elements nest {depth} deep by line {line}, over the limit of {MAX_XML_DEPTH}: \
+                 not a PLUS device set"
+            ),
+        ));
+    }
+    let options = roxmltree::ParsingOptions {
+        nodes_limit: MAX_XML_NODES,
+        ..roxmltree::ParsingOptions::default()
+    };
+    roxmltree::Document::parse_with_options(text, options).map_err(|e| {
         Error::format(
             path,
             FormatProblem::Corrupt,
             format!("not well-formed XML: {e}"),
         )
-    })?;
+    })
+}
+
+/// The nesting depth and line where element nesting first exceeds `limit`, if it does. A light scan of
+/// tags: comments, CDATA, processing instructions and declarations are skipped, quoted attribute values
+/// may hold `>`; well-formedness is the parser's business.
+fn nesting_beyond(text: &str, limit: usize) -> Option<(usize, usize)> {
+    let bytes = text.as_bytes();
+    let mut depth = 0usize;
+    let mut i = 0;
+    let skip_to = |from: usize, end: &str| -> usize {
+        text[from..]
+            .find(end)
+            .map_or(bytes.len(), |k| from + k + end.len())
+    };
+    while i < bytes.len() {
+        if bytes[i] != b'<' {
+            i += 1;
+            continue;
+        }
+        let rest = &text[i..];
+        if rest.starts_with("<!--") {
+            i = skip_to(i + 4, "-->");
+        } else if rest.starts_with("<![CDATA[") {
+            i = skip_to(i + 9, "]]>");
+        } else if rest.starts_with("<?") {
+            i = skip_to(i + 2, "?>");
+        } else if rest.starts_with("<!") {
+            i = skip_to(i + 2, ">");
+        } else if rest.starts_with("</") {
+            depth = depth.saturating_sub(1);
+            i = skip_to(i + 2, ">");
+        } else {
+            // An opening tag: find its end outside quotes; `/>` closes it at once.
+            let mut j = i + 1;
+            let mut quote = None;
+            while j < bytes.len() {
+                match (quote, bytes[j]) {
+                    (None, b'"' | b'\'') => quote = Some(bytes[j]),
+                    (Some(q), c) if c == q => quote = None,
+                    (None, b'>') => break,
+                    _ => {}
+                }
+                j += 1;
+            }
+            let self_closing = j > i + 1 && bytes.get(j - 1) == Some(&b'/');
+            if !self_closing {
+                depth += 1;
+                if depth > limit {
+                    let line = 1 + bytes[..i].iter().filter(|&&b| b == b'\n').count();
+                    return Some((depth, line));
+                }
+            }
+            i = j + 1;
+        }
+    }
+    None
+}
+
+/// Largest departure of a transform's bottom row from `0 0 0 1` accepted as rounding.
+const AFFINE_TOLERANCE: f64 = 1e-6;
+
+/// `Err(bottom row)` unless the matrix's bottom row is `0 0 0 1` (an affine transform).
+pub fn check_affine(m: &DMat4) -> std::result::Result<(), [f64; 4]> {
+    let row = [m.x_axis.w, m.y_axis.w, m.z_axis.w, m.w_axis.w];
+    let want = [0.0, 0.0, 0.0, 1.0];
+    if row
+        .iter()
+        .zip(want)
+        .all(|(v, w)| (v - w).abs() <= AFFINE_TOLERANCE)
+    {
+        Ok(())
+    } else {
+        Err(row)
+    }
+}
+
+/// Parses device-set XML text; `path` names the source in errors.
+pub fn parse_calibration(text: &str, path: &Path) -> Result<Calibration> {
+    let doc = parse_xml(text, path)?;
+    let root = doc.root_element().tag_name().name();
+    if root != "PlusConfiguration" {
+        return Err(Error::format(
+            path,
+            FormatProblem::Unsupported,
+            format!("the root element is <{root}>, not <PlusConfiguration>: not a PLUS device set"),
+        ));
+    }
     let mut transforms = Vec::new();
+    let mut image_to_probe_lines: Vec<u32> = Vec::new();
     for node in doc
         .descendants()
         .filter(|n| n.has_tag_name("CoordinateDefinitions"))
@@ -65,8 +175,33 @@ pub fn parse_calibration(text: &str, path: &Path) -> Result<Calibration> {
         };
         let from = attr("From")?.trim().to_string();
         let to = attr("To")?.trim().to_string();
+        let line = doc.text_pos_at(node.range().start).row;
         let matrix = parse_matrix(attr("Matrix")?, &format!("{from}To{to}"), path)?;
+        if let Err(row) = check_affine(&matrix) {
+            return Err(Error::format(
+                path,
+                FormatProblem::BadValue,
+                format!(
+                    "{from}To{to} Matrix (line {line}) is not affine: its bottom row is {} {} {} {}, \
+                     not 0 0 0 1",
+                    row[0], row[1], row[2], row[3]
+                ),
+            ));
+        }
+        if from == "Image" && to == "Probe" {
+            image_to_probe_lines.push(line);
+        }
         transforms.push((from, to, matrix));
+    }
+    if let [first, second, ..] = image_to_probe_lines[..] {
+        return Err(Error::format(
+            path,
+            FormatProblem::BadValue,
+            format!(
+                "two Image->Probe calibrations (Transform From=\"Image\" To=\"Probe\" at lines \
+                 {first} and {second}): keep the one that is right"
+            ),
+        ));
     }
     let image_to_probe = if let Some((_, _, m)) = transforms
         .iter()
@@ -307,6 +442,39 @@ mod tests {
         assert_eq!(e.problem(), Some(FormatProblem::BadValue));
         let e = parse_calibration("<PlusConfiguration>", Path::new(P)).unwrap_err();
         assert_eq!(e.problem(), Some(FormatProblem::Corrupt));
+        let projective = nan.replace("NaN 0 0 0 0 1 0 0 0 0 1", "1 0 0 0 0 1 0 0 0 0.5 1");
+        let e = parse_calibration(&projective, Path::new(P)).unwrap_err();
+        assert!(e.to_string().contains("not affine"), "{e}");
+        let one =
+            r#"<Transform From="Image" To="Probe" Matrix="1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1"/>"#;
+        let twice = format!(
+            "<PlusConfiguration><CoordinateDefinitions>\n{one}\n{one}\n</CoordinateDefinitions></PlusConfiguration>"
+        );
+        let e = parse_calibration(&twice, Path::new(P)).unwrap_err();
+        assert!(e.to_string().contains("lines 2 and 3"), "{e}");
+        let wrong_root = format!(
+            "<Configuration><CoordinateDefinitions>{one}</CoordinateDefinitions></Configuration>"
+        );
+        let e = parse_calibration(&wrong_root, Path::new(P)).unwrap_err();
+        assert!(e.to_string().contains("<Configuration>"), "{e}");
+    }
+
+    #[test]
+    fn deep_nesting_is_refused_before_parsing() {
+        let deep = format!(
+            "<PlusConfiguration>{}{}</PlusConfiguration>",
+            "<a>".repeat(20_000),
+            "</a>".repeat(20_000)
+        );
+        let e = parse_calibration(&deep, Path::new(P)).unwrap_err();
+        assert!(e.to_string().contains("nest 257 deep"), "{e}");
+        // Self-closing tags, comments and quoted `>` do not count as nesting.
+        let flat = format!(
+            "<PlusConfiguration>{}<!-- <a><a> --><b x=\"a>b\"/></PlusConfiguration>",
+            "<c/>".repeat(1000)
+        );
+        assert_eq!(nesting_beyond(&flat, 2), None);
+        assert_eq!(nesting_beyond("<a><b><c></c></b></a>", 2), Some((3, 1)));
     }
 
     #[test]

@@ -136,7 +136,10 @@ pub(crate) fn read_pixel_block<R: Read>(
                     ),
                 ));
             }
-            let mut buf = vec![0u8; expected_usize];
+            let mut buf = crate::resources::try_zeroed_vec::<u8>(
+                expected_usize,
+                &format!("{}: the pixel data", path.display()),
+            )?;
             let mut reader = reader;
             reader.read_exact(&mut buf).map_err(|e| {
                 if e.kind() == std::io::ErrorKind::UnexpectedEof {
@@ -192,7 +195,13 @@ fn inflate_exact<D: Read>(decoder: D, expected: u64, path: &Path) -> Result<Vec<
     let upfront = usize::try_from(expected)
         .unwrap_or(usize::MAX)
         .min(MAX_UPFRONT_BYTES);
-    let mut buf = Vec::with_capacity(upfront);
+    let mut buf = Vec::new();
+    buf.try_reserve_exact(upfront).map_err(|_| {
+        Error::ResourceLimit(format!(
+            "{}: could not allocate {upfront} bytes for the pixel data",
+            path.display()
+        ))
+    })?;
     // One byte more than promised, to notice a stream that holds more.
     let mut limited = decoder.take(expected.saturating_add(1));
     loop {
@@ -457,13 +466,21 @@ impl FrameFieldCollector {
                 ));
             }
             let array: [f64; 16] = numbers.try_into().expect("16 numbers");
-            frames[index].transforms.insert(
-                base,
-                FrameTransform {
-                    matrix: mat4_from_row_major(&array),
-                    valid,
-                },
-            );
+            let matrix = mat4_from_row_major(&array);
+            if valid && let Err(row) = super::plus_config::check_affine(&matrix) {
+                return Err(Error::format(
+                    path,
+                    FormatProblem::BadValue,
+                    format!(
+                        "frame {index}: Seq_Frame{index:04}_{base}Transform is not affine: its \
+                         bottom row is {} {} {} {}, not 0 0 0 1",
+                        row[0], row[1], row[2], row[3]
+                    ),
+                ));
+            }
+            frames[index]
+                .transforms
+                .insert(base, FrameTransform { matrix, valid });
         }
         // A status without its matrix: keep the information as a plain field rather than drop it.
         for ((index, base), ok) in statuses {
@@ -509,6 +526,13 @@ pub(crate) fn assemble(a: Assembled, path: &Path) -> Result<TrackedSequence> {
         }
         None => empty_pixels(a.layout.element),
     };
+    if let PixelData::F32(values) = &pixels {
+        check_finite_pixels(
+            values,
+            a.layout.width * a.layout.height * a.layout.channels,
+            path,
+        )?;
+    }
     Ok(TrackedSequence {
         width: a.layout.width,
         height: a.layout.height,
@@ -518,6 +542,26 @@ pub(crate) fn assemble(a: Assembled, path: &Path) -> Result<TrackedSequence> {
         pixels,
         header: a.header,
     })
+}
+
+/// Refuses floating-point frames holding NaN or infinite pixels: no grey level stands for them, and
+/// masking them would hide a broken recording. Names how many there are and the first frame with one.
+fn check_finite_pixels(values: &[f32], frame_len: usize, path: &Path) -> Result<()> {
+    let bad = values.iter().filter(|v| !v.is_finite()).count();
+    if bad == 0 {
+        return Ok(());
+    }
+    let first = values.iter().position(|v| !v.is_finite()).unwrap_or(0);
+    Err(Error::format(
+        path,
+        FormatProblem::BadValue,
+        format!(
+            "{bad} of {} MET_FLOAT pixels are NaN or infinite (the first in frame {}); echosurf \
+             refuses non-finite pixels rather than guess a grey level for them",
+            values.len(),
+            first / frame_len.max(1)
+        ),
+    ))
 }
 
 pub(crate) fn empty_pixels(element: ElementType) -> PixelData {

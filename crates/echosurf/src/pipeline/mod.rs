@@ -406,6 +406,9 @@ pub struct StageCounts {
     pub centres: usize,
     /// Triangles per surface, in level order.
     pub triangles: Vec<usize>,
+    /// The sweep was segmented as bone (`segment::bone`): bands around bone echoes, fitted against
+    /// each echo's own contrast.
+    pub bone_sweep: bool,
 }
 
 /// Parameters actually used, defaults resolved.
@@ -537,8 +540,16 @@ pub fn prepare_samples(
         .map(|c| c.pixel_size_mm())
         .unwrap_or([f64::NAN, f64::NAN]);
     let bin_px = sample_bin_px(options.sample_bin_mm, pixel_size_mm);
+    // A bone band is fitted against each echo's own contrast (see `segment::bone`).
+    let normalised = masks.bone_sweep.then(|| {
+        let px = masks.parameters.pixel_size_mm.unwrap_or(1.0);
+        let b = &options.segment.bone_echoes;
+        let core = [b.band_above_mm, b.band_below_mm].map(|mm| (mm / px).round() as usize);
+        crate::segment::bone::contrast_normalised(sequence, &masks.masks, &masks.bone_echoes, core)
+    });
+    let sampled = normalised.as_ref().unwrap_or(sequence);
     let (all, cells) = meter.stage("samples", || {
-        collect_samples_binned_with_cells(sequence, &poses, &masks, bin_px)
+        collect_samples_binned_with_cells(sampled, &poses, &masks, bin_px)
     });
     if all.is_empty() {
         return Err(Error::InvalidInput(
@@ -546,8 +557,8 @@ pub fn prepare_samples(
                 .into(),
         ));
     }
-    let levels = estimate_echo_levels(sequence, &poses, &masks)
-        .or_else(|| estimate_levels(&all.intensities));
+    let levels =
+        estimate_echo_levels(sampled, &poses, &masks).or_else(|| estimate_levels(&all.intensities));
     let (samples, near_echo_samples) =
         meter.stage("decimate", || match (options.echo_margin_mm, levels) {
             (Some(margin_mm), Some(l)) if all.len() > options.max_samples => {
@@ -574,6 +585,7 @@ pub fn prepare_samples(
         binned_samples: all.len(),
         near_echo_samples,
         samples: samples.len(),
+        bone_sweep: masks.bone_sweep,
         ..Default::default()
     };
     Ok(PreparedSamples {

@@ -11,11 +11,23 @@ const MAX_MASK_PIXELS: u64 = 1 << 28;
 
 impl InitialBand {
     /// Reads a PNG mask (any colour type or depth): a pixel is in the band if any colour channel is
-    /// non-zero and, with an alpha channel, it is not fully transparent.
+    /// non-zero and, with an alpha channel, it is not fully transparent. 16-bit samples are kept at
+    /// 16 bits, so a value of 1 counts as in the band.
     pub fn from_png(path: &Path) -> Result<InitialBand> {
+        Self::read_png(path, None)
+    }
+
+    /// [`InitialBand::from_png`], also checking that the mask has the frames' size: from the header,
+    /// before anything is decoded.
+    pub fn from_png_sized(path: &Path, width: usize, height: usize) -> Result<InitialBand> {
+        Self::read_png(path, Some((width, height)))
+    }
+
+    fn read_png(path: &Path, frame_size: Option<(usize, usize)>) -> Result<InitialBand> {
         let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
         let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
-        decoder.set_transformations(png::Transformations::normalize_to_color8());
+        // Palette and low bit depths to 8 bits, tRNS to alpha; 16-bit samples stay 16-bit.
+        decoder.set_transformations(png::Transformations::EXPAND);
         let bad = |m: String| Error::format(path, FormatProblem::Corrupt, m);
         let mut reader = decoder
             .read_info()
@@ -24,6 +36,17 @@ impl InitialBand {
             let info = reader.info();
             (info.width as usize, info.height as usize)
         };
+        if let Some((fw, fh)) = frame_size
+            && (width, height) != (fw, fh)
+        {
+            return Err(Error::format(
+                path,
+                FormatProblem::SizeMismatch,
+                format!(
+                    "initial band mask is {width}x{height} pixels but the frames are {fw}x{fh}"
+                ),
+            ));
+        }
         if width as u64 * height as u64 > MAX_MASK_PIXELS || width == 0 || height == 0 {
             return Err(Error::format(
                 path,
@@ -31,11 +54,17 @@ impl InitialBand {
                 format!("PNG mask of {width}x{height} pixels is empty or too large"),
             ));
         }
-        let mut buf = vec![0u8; reader.output_buffer_size()];
+        let mut buf =
+            crate::resources::try_zeroed_vec::<u8>(reader.output_buffer_size(), "the PNG mask")
+                .map_err(|e| bad(e.to_string()))?;
         let frame = reader
             .next_frame(&mut buf)
             .map_err(|e| bad(format!("PNG mask does not decode: {e}")))?;
         let channels = frame.color_type.samples();
+        let sample_bytes = match frame.bit_depth {
+            png::BitDepth::Sixteen => 2,
+            _ => 1,
+        };
         // A band painted on a transparent layer: its unpainted pixels are see-through, whatever
         // colour they carry.
         let colours = match frame.color_type {
@@ -43,11 +72,17 @@ impl InitialBand {
             _ => channels,
         };
         let stride = frame.line_size;
+        let pixel_bytes = channels * sample_bytes;
+        let colour_bytes = colours * sample_bytes;
         let mut data = Vec::with_capacity(width * height);
         for v in 0..height {
-            let row = &buf[v * stride..v * stride + width * channels];
-            data.extend(row.chunks_exact(channels).map(|px| {
-                px[..colours].iter().any(|&x| x != 0) && px[colours..].iter().all(|&a| a != 0)
+            let row = &buf[v * stride..v * stride + width * pixel_bytes];
+            data.extend(row.chunks_exact(pixel_bytes).map(|px| {
+                let (colour, alpha) = px.split_at(colour_bytes);
+                colour.iter().any(|&x| x != 0)
+                    && alpha
+                        .chunks_exact(sample_bytes)
+                        .all(|a| a.iter().any(|&x| x != 0))
             }));
         }
         Ok(InitialBand::Mask {
@@ -55,27 +90,6 @@ impl InitialBand {
             height,
             data,
         })
-    }
-
-    /// [`InitialBand::from_png`], also checking that the mask has the frames' size.
-    pub fn from_png_sized(path: &Path, width: usize, height: usize) -> Result<InitialBand> {
-        let band = Self::from_png(path)?;
-        if let InitialBand::Mask {
-            width: mw,
-            height: mh,
-            ..
-        } = &band
-            && (*mw, *mh) != (width, height)
-        {
-            return Err(Error::format(
-                path,
-                FormatProblem::SizeMismatch,
-                format!(
-                    "initial band mask is {mw}x{mh} pixels but the frames are {width}x{height}"
-                ),
-            ));
-        }
-        Ok(band)
     }
 
     /// Reads `{"polygon": [[u, v], ...]}` (pixel coordinates of the MF-oriented frame, at least 3 vertices).

@@ -75,6 +75,7 @@
 //! Felzenszwalb-Huttenlocher) and one lookup per pixel (squared distances are integers, so the Gaussian
 //! is a table); rows run in parallel with rayon and all buffers are reused between frames.
 
+pub mod bone;
 pub(crate) mod filters;
 mod init;
 mod preview;
@@ -192,6 +193,13 @@ pub struct SegmentOptions {
     /// misses its far wall). Off by default.
     #[serde(default)]
     pub follow_band: bool,
+    /// Beyond the paper: with the automatic first band, a sweep made in contact with tissue whose
+    /// frames mostly show bright echoes over an acoustic shadow is segmented as bone
+    /// ([`bone`]): the band is the bone's surface, not the tissue layers under the probe.
+    #[serde(default)]
+    pub bone: bone::BoneMode,
+    #[serde(default)]
+    pub bone_echoes: bone::BoneEchoOptions,
 }
 
 impl Default for SegmentOptions {
@@ -217,6 +225,8 @@ impl Default for SegmentOptions {
             detect_data_region: true,
             backward_pass: false,
             follow_band: false,
+            bone: bone::BoneMode::Auto,
+            bone_echoes: bone::BoneEchoOptions::default(),
         }
     }
 }
@@ -313,6 +323,9 @@ impl SegmentOptions {
         if self.edgel_chaining.is_some_and(|c| c.layers == 0) {
             return bad("edgel_chaining.layers", "must be >= 1");
         }
+        if let Err(why) = self.bone_echoes.validate() {
+            return bad("bone_echoes", &why);
+        }
         Ok(())
     }
 }
@@ -408,6 +421,11 @@ pub struct BandMasks {
     /// Orientation written with the masks (MF plus the third letter of the source, if any).
     pub orientation: String,
     pub parameters: ResolvedParameters,
+    /// The sweep was segmented as bone ([`bone`]): each band is the bone echo's surface.
+    pub bone_sweep: bool,
+    /// For a bone sweep, per frame and per column of the full frame, the column's bone echo (row in
+    /// the full frame); empty otherwise.
+    pub bone_echoes: Vec<Vec<Option<bone::BoneEcho>>>,
 }
 
 impl BandMasks {
@@ -711,6 +729,8 @@ pub fn segment_sequence(
             frames: sequence.frames.clone(),
             orientation,
             parameters,
+            bone_sweep: false,
+            bone_echoes: Vec::new(),
         });
     };
     let init_crop: Option<Vec<bool>> = init_full.map(|full| crop_bool(&full, width, clip));
@@ -722,6 +742,28 @@ pub fn segment_sequence(
         ));
     }
 
+    if init_crop.is_none() && options.bone != bone::BoneMode::Never {
+        let bone_px = pixel_size_mm.filter(|s| s.is_finite() && *s > 0.0);
+        if let Some(bone_px) = bone_px
+            && let Some(masks) = bone_masks(sequence, poses, clip, bone_px, options)
+        {
+            let (masks, initialised_frames, bone_echoes) = masks;
+            return Ok(BandMasks {
+                width,
+                height,
+                masks,
+                warnings: clip_beyond_frame_warning(given_clip, width, height)
+                    .into_iter()
+                    .collect(),
+                initialised_frames,
+                frames: sequence.frames.clone(),
+                orientation,
+                parameters,
+                bone_sweep: true,
+                bone_echoes,
+            });
+        }
+    }
     let mut run = BandPropagation {
         sequence,
         clip,
@@ -781,8 +823,81 @@ pub fn segment_sequence(
         frames: sequence.frames.clone(),
         orientation,
         parameters,
+        bone_sweep: false,
+        bone_echoes: Vec::new(),
     })
 }
+
+/// The bone bands of every posed frame when the sweep is bone ([`bone::BoneEvidence::is_bone`], or
+/// [`bone::BoneMode::Always`]); `None` otherwise. Also returns the frames that hold a bone band.
+fn bone_masks(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    clip: ClipRect,
+    pixel_size_mm: f64,
+    options: &SegmentOptions,
+) -> Option<BoneBands> {
+    use rayon::prelude::*;
+    let frame_count = sequence.frames.len();
+    let bone_options = &options.bone_echoes;
+    let taps = gaussian_taps(bone_options.smoothing_mm / pixel_size_mm);
+    let (cw, ch) = (clip.size_px[0], clip.size_px[1]);
+    let mut frames: Vec<usize> = poses.poses.iter().map(|p| p.frame_index).collect();
+    frames.sort_unstable();
+    frames.dedup();
+    let per_frame: Vec<FrameBoneEvidence> = frames
+        .par_iter()
+        .map(|&frame| {
+            let mut ws = Workspace::default();
+            load_smoothed(&mut ws, sequence, frame, clip, &taps);
+            let levels = bone::near_field_and_echo_levels(&ws.smoothed, cw, ch, pixel_size_mm);
+            let rows = bone::bone_echoes(&ws.smoothed, cw, ch, pixel_size_mm, bone_options);
+            (levels, rows)
+        })
+        .collect();
+    let min_columns = bone::BONE_FRAME_COLUMN_FRACTION * cw as f64;
+    let evidence = bone::BoneEvidence {
+        frames: per_frame.len(),
+        tissue_frames: bone::tissue_frames(&per_frame.iter().map(|(l, _)| *l).collect::<Vec<_>>()),
+        bone_frames: per_frame
+            .iter()
+            .filter(|(_, rows)| rows.iter().flatten().count() as f64 >= min_columns)
+            .count(),
+    };
+    if options.bone == bone::BoneMode::Auto && !evidence.is_bone() {
+        return None;
+    }
+    let width = sequence.width;
+    let mut masks = vec![vec![0u8; width * sequence.height]; frame_count];
+    let mut with_band = Vec::new();
+    let mut echoes = vec![Vec::new(); frame_count];
+    let mut band = Vec::new();
+    let [u0, v0] = clip.origin_px;
+    for (&frame, (_, rows)) in frames.iter().zip(&per_frame) {
+        if rows.iter().all(Option::is_none) {
+            continue;
+        }
+        band.clear();
+        band.resize(cw * ch, true);
+        add_to_mask(&band, clip, width, &mut masks[frame]);
+        let mut full = vec![None; width];
+        for (u, e) in rows.iter().enumerate() {
+            full[u0 + u] = e.map(|e| bone::BoneEcho {
+                row: e.row + v0,
+                ..e
+            });
+        }
+        echoes[frame] = full;
+        with_band.push(frame);
+    }
+    Some((masks, with_band, echoes))
+}
+
+/// One frame's near-field and echo levels, and its bone echoes per column.
+type FrameBoneEvidence = (Option<[f64; 2]>, Vec<Option<bone::BoneEcho>>);
+
+/// Bone bands: masks, the frames holding one, and each frame's bone echoes per column.
+type BoneBands = (Vec<Vec<u8>>, Vec<usize>, Vec<Vec<Option<bone::BoneEcho>>>);
 
 /// Images, pixel data of the stated size, and poses that name frames of the sequence.
 fn check_segmentable(sequence: &TrackedSequence, poses: &PoseResolution) -> Result<()> {

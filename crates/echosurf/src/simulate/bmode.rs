@@ -42,7 +42,8 @@ pub struct Acoustics {
     pub axial_fwhm_mm: f64,
     /// Full width at half maximum of the PSF across the beam, in the image plane (mm).
     pub lateral_fwhm_mm: f64,
-    /// The water bath (and the duck's water-filled cavity).
+    /// The medium around the object and in the duck's cavity: a water bath by default, soft tissue with
+    /// [`Surround::Tissue`] (the name stays for the files already written).
     pub water: Material,
     /// The phantom's material (rubber for the duck, soft tissue for the hand).
     pub object: Material,
@@ -52,6 +53,18 @@ pub struct Acoustics {
     pub specular_exponent: f64,
     /// Relative RMS of the rough-surface speckle multiplying the specular echo.
     pub roughness: f64,
+    /// Share (0, 1] of the 0.1 mm scatterer cells that hold a diffuse scatterer: 1 gives fully developed
+    /// (Rayleigh) speckle, small values sparse bright points; the RMS level stays the material's.
+    #[serde(
+        default = "full_scatterer_density",
+        skip_serializing_if = "is_full_scatterer_density"
+    )]
+    pub scatterer_density: f64,
+    /// Time-gain compensation: amplify each row by the round-trip attenuation of the surrounding medium
+    /// down to its depth, as a scanner's TGC does, so tissue around the object keeps its brightness with
+    /// depth (a water bath barely attenuates and needs none).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub depth_gain_compensation: bool,
     /// Diffuse (rough-surface) echo at normal incidence (dB); falls as cos(theta).
     pub diffuse_db: f64,
     /// Fraction of the round-trip amplitude lost at each interface crossed (shadowing).
@@ -80,6 +93,8 @@ impl Default for Acoustics {
             reflection_db: -21.0,
             specular_exponent: 12.0,
             roughness: 1.0,
+            scatterer_density: 1.0,
+            depth_gain_compensation: false,
             diffuse_db: -48.0,
             interface_loss: 0.1,
             noise_db: -64.0,
@@ -88,7 +103,89 @@ impl Default for Acoustics {
     }
 }
 
+fn full_scatterer_density() -> f64 {
+    1.0
+}
+
+// serde's skip_serializing_if hands the field by reference.
+#[allow(clippy::trivially_copy_pass_by_ref)]
+fn is_full_scatterer_density(density: &f64) -> bool {
+    *density == 1.0
+}
+
+impl Material {
+    /// Soft tissue around the object (`--surround tissue`): speckle a little brighter than the phantom's
+    /// material, so the background is texture, not dark water.
+    pub const SURROUND_TISSUE: Material = Material {
+        scatter_db: -47.0,
+        attenuation_db_per_cm_mhz: 0.5,
+    };
+    /// Cortical bone: its interior scatters little and attenuates so strongly that nothing below its
+    /// probe-side surface returns (2 mm of it cost over 50 dB round trip at 7 MHz).
+    pub const BONE: Material = Material {
+        scatter_db: -70.0,
+        attenuation_db_per_cm_mhz: 20.0,
+    };
+}
+
+/// What surrounds the phantom.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Surround {
+    /// A water bath: dark, nearly echo-free.
+    Water,
+    /// Soft tissue: speckle everywhere around the object.
+    Tissue,
+}
+
+impl Surround {
+    pub fn parse(text: &str) -> Option<Surround> {
+        match text.to_ascii_lowercase().as_str() {
+            "water" => Some(Surround::Water),
+            "tissue" => Some(Surround::Tissue),
+            _ => None,
+        }
+    }
+}
+
+/// A named set of physics, the starting point the individual knobs then change.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PhysicsPreset {
+    /// [`Acoustics::default`]: the water bath of the paper's phantoms.
+    Default,
+    /// The same object in soft tissue.
+    Tissue,
+    /// A bone surface in soft tissue: a strong echo and a full shadow below it.
+    Bone,
+}
+
+impl PhysicsPreset {
+    pub fn acoustics(self) -> Acoustics {
+        match self {
+            PhysicsPreset::Default => Acoustics::default(),
+            PhysicsPreset::Tissue => Acoustics::default().with_surround(Surround::Tissue),
+            PhysicsPreset::Bone => {
+                let mut a = Acoustics::default().with_surround(Surround::Tissue);
+                a.object = Material::BONE;
+                // A bone surface reflects ~10 dB more than a rubber wall and passes little on.
+                a.reflection_db = -11.0;
+                a.interface_loss = 0.9;
+                a
+            }
+        }
+    }
+}
+
 impl Acoustics {
+    /// The same scan with the object in water or in soft tissue (the duck's cavity takes the same
+    /// medium); tissue turns the depth gain compensation on.
+    pub fn with_surround(mut self, surround: Surround) -> Acoustics {
+        (self.water, self.depth_gain_compensation) = match surround {
+            Surround::Water => (Acoustics::default().water, false),
+            Surround::Tissue => (Material::SURROUND_TISSUE, true),
+        };
+        self
+    }
+
     /// Checks the parameters a user can set; returns a message naming the first bad one.
     pub fn validate(&self) -> Result<(), String> {
         let positive = [
@@ -130,6 +227,12 @@ impl Acoustics {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} must be >= 0 and finite (got {v})"));
             }
+        }
+        if !(self.scatterer_density > 0.0 && self.scatterer_density <= 1.0) {
+            return Err(format!(
+                "scatterer_density must be in (0, 1] (got {})",
+                self.scatterer_density
+            ));
         }
         if !(0.0..=1.0).contains(&self.interface_loss) {
             return Err(format!(
@@ -212,12 +315,7 @@ fn mix64(mut z: u64) -> u64 {
 /// is Gaussian to well within the tolerance of the speckle statistics.
 #[inline]
 fn cell_gaussian(p: DVec3, inv_grain: f64, salt: u64) -> (f32, f32) {
-    let q = (p * inv_grain).floor();
-    let key = (q.x as i64 as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)
-        ^ (q.y as i64 as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f)
-        ^ (q.z as i64 as u64).wrapping_mul(0x1656_67b1_9e37_79f9)
-        ^ salt;
-    let h1 = mix64(key);
+    let h1 = mix64(cell_key(p, inv_grain, salt));
     let h2 = mix64(h1 ^ 0xd6e8_feb8_6659_fd93);
     // Sum of four 16-bit uniforms: mean 2, variance 4/12.
     let sum4 = |h: u64| {
@@ -225,6 +323,24 @@ fn cell_gaussian(p: DVec3, inv_grain: f64, salt: u64) -> (f32, f32) {
         (s as f32 / 65535.0 - 2.0) * 1.732_050_8
     };
     (sum4(h1), sum4(h2))
+}
+
+/// Hash key of the scatterer cell containing `p`.
+#[inline]
+fn cell_key(p: DVec3, inv_grain: f64, salt: u64) -> u64 {
+    let q = (p * inv_grain).floor();
+    (q.x as i64 as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)
+        ^ (q.y as i64 as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f)
+        ^ (q.z as i64 as u64).wrapping_mul(0x1656_67b1_9e37_79f9)
+        ^ salt
+}
+
+/// Whether the cell containing `p` holds a scatterer, with probability `density` (independent of the
+/// cell's amplitude: another salt).
+#[inline]
+fn cell_occupied(p: DVec3, inv_grain: f64, salt: u64, density: f64) -> bool {
+    let h = mix64(cell_key(p, inv_grain, salt));
+    ((h >> 11) as f64) * (1.0 / (1u64 << 53) as f64) < density
 }
 
 /// Everything fixed across the frames of a simulation.
@@ -293,6 +409,20 @@ impl FrameFormer<'_> {
         let atten_water = atten(&ac.water);
         let atten_object = atten(&ac.object);
         let salt_rough = self.scatter_salt ^ 0x5851_f42d_4c95_7f2d;
+        let salt_occupancy = self.scatter_salt ^ 0x8cb9_2ba7_2f3d_8dd7;
+        let density = ac.scatterer_density;
+        // Sparse scatterers carry 1 / sqrt(density) more amplitude, so the RMS level is unchanged.
+        let sparse_gain = (1.0 / density.sqrt()) as f32;
+        let scatterer = |p: DVec3| -> (f32, f32) {
+            let (zr, zi) = cell_gaussian(p, inv_grain, self.scatter_salt);
+            if density >= 1.0 {
+                (zr, zi)
+            } else if cell_occupied(p, inv_grain, salt_occupancy, density) {
+                (zr * sparse_gain, zi * sparse_gain)
+            } else {
+                (0.0, 0.0)
+            }
+        };
         let salt_diffuse = self.scatter_salt ^ 0x2545_f491_4f6c_dd1d;
 
         let point = |u: isize, v: isize| origin + ex * u as f64 + ey * v as f64;
@@ -338,7 +468,7 @@ impl FrameFormer<'_> {
                             } else {
                                 (amp_water, atten_water)
                             };
-                            let (zr, zi) = cell_gaussian(p, inv_grain, self.scatter_salt);
+                            let (zr, zi) = scatterer(p);
                             scat_re[i] = amp * zr;
                             scat_im[i] = amp * zi;
                             trans[i] = t;
@@ -354,7 +484,7 @@ impl FrameFormer<'_> {
                         } else {
                             (amp_water, atten_water)
                         };
-                        let (zr, zi) = cell_gaussian(p, inv_grain, self.scatter_salt);
+                        let (zr, zi) = scatterer(p);
                         scat_re[i] = amp * zr;
                         scat_im[i] = amp * zi;
                         if d > 3.0 {
@@ -449,12 +579,23 @@ impl FrameFormer<'_> {
         let mut levels = LevelSums::default();
         for v in 0..h {
             let row = v * ew;
+            // TGC: undo the surround's round-trip attenuation down to this row (on the echoes, before the
+            // receiver noise, which stays at its floor).
+            let gain = if ac.depth_gain_compensation {
+                atten_water.powi(-(v as i32))
+            } else {
+                1.0
+            };
             for u in 0..w {
                 let mut re = 0f32;
                 let mut im = 0f32;
                 for (k, &kv) in kernel_lateral.iter().enumerate() {
                     re += kv * sum_re[row + u + k];
                     im += kv * sum_im[row + u + k];
+                }
+                if ac.depth_gain_compensation {
+                    re *= gain;
+                    im *= gain;
                 }
                 let nr: f32 = StandardNormal.sample(&mut rng);
                 let ni: f32 = StandardNormal.sample(&mut rng);
@@ -485,5 +626,225 @@ impl FrameFormer<'_> {
             envelope: envelope_out,
             levels,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::phantom::{Sdf, SolidPhantom, SurfaceFn};
+    use super::*;
+
+    const W: usize = 128;
+    const H: usize = 120;
+    const PITCH: f64 = 0.2;
+
+    /// Image -> object of a probe whose face centre is at `face`, array along x, beam straight down.
+    fn probe_at(face: DVec3) -> DMat4 {
+        let ex = DVec3::X * PITCH;
+        let ey = -DVec3::Z * PITCH;
+        let origin = face - ex * (0.5 * (W as f64 - 1.0));
+        DMat4::from_cols(
+            ex.extend(0.0),
+            ey.extend(0.0),
+            (ex.cross(ey).normalize() * PITCH).extend(0.0),
+            origin.extend(1.0),
+        )
+    }
+
+    fn form(phantom: &dyn Phantom, acoustics: Acoustics, m: &DMat4) -> Frame {
+        FrameFormer {
+            phantom,
+            acoustics,
+            grid: ImageGrid {
+                width: W,
+                height: H,
+            },
+            scatter_salt: 99,
+        }
+        .form(m, 5, true)
+    }
+
+    /// Material below the plane through `point` with unit `normal`.
+    #[derive(Debug)]
+    struct HalfSpace {
+        point: DVec3,
+        normal: DVec3,
+    }
+
+    impl Phantom for HalfSpace {
+        fn distance_and_gradient(&self, p: DVec3) -> (f64, DVec3) {
+            ((p - self.point).dot(self.normal), self.normal)
+        }
+        fn bounds(&self) -> (DVec3, DVec3) {
+            (DVec3::splat(-1e3), DVec3::splat(1e3))
+        }
+        fn surfaces(&self) -> Vec<(String, &SurfaceFn)> {
+            Vec::new()
+        }
+    }
+
+    fn mean(values: impl Iterator<Item = f64>) -> f64 {
+        let (s, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+        s / n as f64
+    }
+
+    /// A sphere far below the image: only the surrounding medium is in view.
+    fn nothing_in_view() -> SolidPhantom {
+        SolidPhantom::new(
+            "far",
+            Sdf::Sphere {
+                center: DVec3::new(0.0, 0.0, -500.0),
+                radius: 1.0,
+            },
+        )
+    }
+
+    #[test]
+    fn default_preset_is_the_default_acoustics_and_writes_no_new_field() {
+        assert_eq!(PhysicsPreset::Default.acoustics(), Acoustics::default());
+        assert_eq!(
+            Acoustics::default().with_surround(Surround::Water),
+            Acoustics::default()
+        );
+        // phantom.json of a default run keeps its bytes: the density appears only when set.
+        let json = serde_json::to_string(&Acoustics::default()).unwrap();
+        assert!(!json.contains("scatterer_density"), "{json}");
+        let sparse = Acoustics {
+            scatterer_density: 0.1,
+            ..Default::default()
+        };
+        let json = serde_json::to_string(&sparse).unwrap();
+        assert!(json.contains("\"scatterer_density\":0.1"), "{json}");
+        let back: Acoustics = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, sparse);
+        for preset in [
+            PhysicsPreset::Default,
+            PhysicsPreset::Tissue,
+            PhysicsPreset::Bone,
+        ] {
+            assert_eq!(preset.acoustics().validate(), Ok(()), "{preset:?}");
+        }
+    }
+
+    #[test]
+    fn lower_specular_exponent_brightens_a_wall_at_45_degrees() {
+        // The wall's normal is 45 degrees from the beam; it crosses the image's centre 10 mm deep.
+        let s = std::f64::consts::FRAC_1_SQRT_2;
+        let wall = HalfSpace {
+            point: DVec3::new(0.0, 0.0, 0.0),
+            normal: DVec3::new(s, 0.0, s),
+        };
+        let m = probe_at(DVec3::new(0.0, 0.0, 10.0));
+        let echo = |exponent: f64| {
+            let a = Acoustics {
+                specular_exponent: exponent,
+                ..Default::default()
+            };
+            let frame = form(&wall, a, &m);
+            // Pixels within 0.2 mm of the wall, away from the image's edges.
+            mean(
+                (10..H - 10)
+                    .flat_map(|v| (10..W - 10).map(move |u| (u, v)))
+                    .filter_map(|(u, v)| {
+                        let p = m.transform_point3(DVec3::new(u as f64, v as f64, 0.0));
+                        wall.distance(p)
+                            .abs()
+                            .lt(&0.2)
+                            .then(|| frame.grey[v * W + u] as f64)
+                    }),
+            )
+        };
+        let (e4, e8, e12, e16) = (echo(4.0), echo(8.0), echo(12.0), echo(16.0));
+        // cos^n at 45 degrees: 0.25, 0.063, 0.016, 0.004 of the normal-incidence echo.
+        assert!(e4 > e8 + 10.0, "cos^4 {e4} vs cos^8 {e8}");
+        assert!(e8 > e12 + 5.0, "cos^8 {e8} vs cos^12 {e12}");
+        assert!(e12 >= e16, "cos^12 {e12} vs cos^16 {e16}");
+    }
+
+    #[test]
+    fn tissue_surround_is_speckle_brighter_than_water() {
+        let m = probe_at(DVec3::new(0.0, 0.0, 50.0));
+        let far = nothing_in_view();
+        let grey = |surround: Surround| {
+            let frame = form(&far, Acoustics::default().with_surround(surround), &m);
+            mean(
+                (10..H - 10)
+                    .flat_map(|v| (10..W - 10).map(move |u| v * W + u))
+                    .map(|i| frame.grey[i] as f64),
+            )
+        };
+        let (water, tissue) = (grey(Surround::Water), grey(Surround::Tissue));
+        // 8.5 dB more scatter: ~36 grey levels more on a 60 dB display.
+        assert!(tissue > water + 25.0, "tissue {tissue} vs water {water}");
+    }
+
+    #[test]
+    fn sparse_scatterers_keep_the_level_but_lose_rayleigh_statistics() {
+        let m = probe_at(DVec3::new(0.0, 0.0, 50.0));
+        let far = nothing_in_view();
+        let stats = |density: f64| {
+            let mut a = Acoustics::default().with_surround(Surround::Tissue);
+            a.scatterer_density = density;
+            let frame = form(&far, a, &m);
+            let env = frame.envelope.unwrap();
+            let values: Vec<f64> = (10..H - 10)
+                .flat_map(|v| (10..W - 10).map(move |u| v * W + u))
+                .map(|i| env[i] as f64)
+                .collect();
+            let mu = mean(values.iter().copied());
+            let power = mean(values.iter().map(|x| x * x));
+            let sd = (power - mu * mu).sqrt();
+            (power, mu / sd)
+        };
+        let (power_full, snr_full) = stats(1.0);
+        let (power_sparse, snr_sparse) = stats(0.02);
+        let rayleigh = (std::f64::consts::PI / (4.0 - std::f64::consts::PI)).sqrt();
+        assert!((snr_full / rayleigh - 1.0).abs() < 0.15, "full {snr_full}");
+        // About half a scatterer per resolution cell: far below Rayleigh's signal-to-noise ratio.
+        assert!(snr_sparse < 0.8 * rayleigh, "sparse {snr_sparse}");
+        let ratio = power_sparse / power_full;
+        assert!((0.6..=1.6).contains(&ratio), "mean power ratio {ratio}");
+        let bad = Acoustics {
+            scatterer_density: 0.0,
+            ..Default::default()
+        };
+        assert!(bad.validate().unwrap_err().contains("scatterer_density"));
+    }
+
+    #[test]
+    fn bone_echo_is_bright_and_dark_below() {
+        // A 6 mm bone ball 12 mm below the face, in tissue.
+        let ball = SolidPhantom::new(
+            "ball",
+            Sdf::Sphere {
+                center: DVec3::ZERO,
+                radius: 6.0,
+            },
+        );
+        let m = probe_at(DVec3::new(0.0, 0.0, 12.0));
+        let frame = form(&ball, PhysicsPreset::Bone.acoustics(), &m);
+        let grey = |v: usize, u: usize| frame.grey[v * W + u] as f64;
+        let centre = W / 2;
+        // The top of the ball is 6 mm deep: rows 28-32.
+        let echo = (27..=33)
+            .map(|v| mean((centre - 3..centre + 3).map(|u| grey(v, u))))
+            .fold(0.0, f64::max);
+        // Inside and under the ball (rows 40-110), within 3 mm of the axis (the ball's radius is 6 mm), against tissue beside it.
+        let under = mean(
+            (40..110)
+                .flat_map(|v| (centre - 15..centre + 15).map(move |u| (v, u)))
+                .map(|(v, u)| grey(v, u)),
+        );
+        let beside = mean(
+            (40..110)
+                .flat_map(|v| (0..20).chain(W - 20..W).map(move |u| (v, u)))
+                .map(|(v, u)| grey(v, u)),
+        );
+        assert!(echo > 170.0, "bone echo {echo}");
+        // What remains under the bone is the (depth-compensated) electronic noise, far below tissue.
+        assert!(
+            under + 20.0 < beside,
+            "under the bone {under}, tissue beside {beside}"
+        );
     }
 }

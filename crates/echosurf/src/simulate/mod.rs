@@ -23,9 +23,14 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-pub use bmode::{Acoustics, Frame, FrameFormer, ImageGrid, LevelSums, Material};
+pub use bmode::{
+    Acoustics, Frame, FrameFormer, ImageGrid, LevelSums, Material, PhysicsPreset, Surround,
+};
 pub use errors::TrackingErrors;
-pub use output::{SimulationFiles, merged_truth, write_preview, write_simulation};
+pub use output::{
+    SimulationFiles, SimulationNames, merged_truth, write_preview, write_simulation,
+    write_simulation_as,
+};
 pub use phantom::{Phantom, PhantomKind, build_phantom, phantom_sdf};
 pub use sweep::{HandMotion, SweepSpec};
 
@@ -200,7 +205,34 @@ pub fn simulate(options: &SimulationOptions, progress: &dyn Progress) -> Result<
     let phantom = build_phantom(&options.phantom)?;
     let mut sim = simulate_sweeps_with(phantom.as_ref(), options, progress)?;
     sim.truth = output::truth_meshes(phantom.as_ref(), options.truth_resolution_mm, progress)?;
+    if phantom.probe_side_only() {
+        for (_, mesh) in &mut sim.truth {
+            keep_probe_side(mesh);
+        }
+    }
     Ok(sim)
+}
+
+/// Keeps the triangles whose outward normal points up (z > 0), toward a probe above: the side of a bone
+/// an ultrasound scan can show. The normal is the winding's (outward on the truth surfaces, and the one
+/// `compare` uses).
+pub fn keep_probe_side(mesh: &mut Mesh) {
+    let n = mesh.vertices.len();
+    let keep: Vec<bool> = mesh
+        .triangles
+        .iter()
+        .map(|t| {
+            if t.iter().any(|&i| i as usize >= n) {
+                return false;
+            }
+            let [a, b, c] = t.map(|i| i as usize);
+            (mesh.vertices[b] - mesh.vertices[a])
+                .cross(mesh.vertices[c] - mesh.vertices[a])
+                .z
+                > 0.0
+        })
+        .collect();
+    mesh.retain_triangles(&keep);
 }
 
 /// Simulates the sweeps only (`truth` left empty): what the benchmark times.
@@ -221,12 +253,16 @@ fn simulate_sweeps_with(
         depth_mm: (height - 1) as f64 * pitch,
     };
     let bounds = phantom.bounds();
-    let specs = sweep::plan_sweeps(
+    let mut specs = sweep::plan_sweeps(
         bounds,
         probe.width_mm,
         options.motion.side_tilt_deg,
         options.sweeps,
     );
+    if phantom.probe_side_only() && options.sweeps.is_none() {
+        // A bone is scanned from one side: the top passes, no side sweeps looking under it.
+        specs.retain(|s| s.tilt_deg == 0.0);
+    }
 
     // Poses, sweep after sweep, 3 s apart.
     let mut plan_rng = ChaCha8Rng::seed_from_u64(stream_seed(options.seed, STREAM_PLAN, 0));
@@ -369,4 +405,59 @@ fn simulate_sweeps_with(
 /// Timestamps to the microsecond, so that they survive a text round trip unchanged.
 fn round_time(t: f64) -> f64 {
     (t * 1e6).round() / 1e6
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Volume enclosed by a closed mesh, positive when its winding is outward (divergence theorem).
+    fn signed_volume(mesh: &Mesh) -> f64 {
+        mesh.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+                a.dot(b.cross(c)) / 6.0
+            })
+            .sum()
+    }
+
+    #[test]
+    fn bone_truth_is_the_probe_side_and_its_sweeps_look_down() {
+        let phantom = build_phantom(&PhantomKind::Bone).unwrap();
+        assert!(phantom.probe_side_only());
+        let mut truth = output::truth_meshes(phantom.as_ref(), 1.0, &crate::progress::NoProgress)
+            .unwrap()
+            .pop()
+            .unwrap()
+            .1;
+        let closed_area = truth.area_mm2();
+        let (lo, _) = truth.bounds().unwrap();
+        // The closed truth's winding is outward (positive enclosed volume), so "up" by winding is the
+        // probe side.
+        let closed_volume = signed_volume(&truth);
+        assert!(closed_volume > 1000.0, "{closed_volume}");
+        keep_probe_side(&mut truth);
+        // The underside is gone: nothing near the bottom remains.
+        let (kept_lo, _) = truth.bounds().unwrap();
+        assert!(kept_lo.z > lo.z + 3.0, "{kept_lo} vs {lo}");
+        let share = truth.area_mm2() / closed_area;
+        assert!(
+            (0.35..0.65).contains(&share),
+            "probe side {share} of the area"
+        );
+        assert!(!build_phantom(&PhantomKind::Duck).unwrap().probe_side_only());
+
+        let options = SimulationOptions {
+            phantom: PhantomKind::Bone,
+            frames_per_sweep: 2,
+            width_px: 32,
+            height_px: 32,
+            pixel_size_mm: 1.0,
+            acoustics: PhysicsPreset::Bone.acoustics(),
+            ..Default::default()
+        };
+        let sim = simulate_sweeps(&options, &crate::progress::NoProgress).unwrap();
+        assert!(sim.sweep_specs.iter().all(|s| s.tilt_deg == 0.0));
+    }
 }

@@ -69,35 +69,113 @@ pub fn merged_truth(truth: &[(String, Mesh)]) -> Mesh {
     Mesh::merged(truth.iter().map(|(_, m)| m))
 }
 
+/// The file names a simulation writes into its folder.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SimulationNames {
+    /// Base name of the sequence (`NAME.mha`) and calibration (`NAME_config.xml`).
+    pub name: String,
+    /// Prefix of the truth meshes and the description: empty (`truth.ply`, `phantom.json`) or
+    /// `NAME_` (`NAME_truth.ply`, `NAME_phantom.json`), so runs of other names share a folder.
+    pub truth_prefix: String,
+}
+
+impl SimulationNames {
+    /// `NAME.mha`, `NAME_config.xml`, `truth.ply`, `phantom.json`.
+    pub fn plain(name: &str) -> SimulationNames {
+        SimulationNames {
+            name: name.to_string(),
+            truth_prefix: String::new(),
+        }
+    }
+
+    /// `NAME.mha`, `NAME_config.xml`, `NAME_truth.ply`, `NAME_phantom.json`.
+    pub fn prefixed(name: &str) -> SimulationNames {
+        SimulationNames {
+            name: name.to_string(),
+            truth_prefix: format!("{name}_"),
+        }
+    }
+
+    pub fn sequence(&self, dir: &Path) -> PathBuf {
+        dir.join(format!("{}.mha", self.name))
+    }
+
+    pub fn calibration(&self, dir: &Path) -> PathBuf {
+        dir.join(format!("{}_config.xml", self.name))
+    }
+
+    /// All true surfaces in one mesh.
+    pub fn truth(&self, dir: &Path) -> PathBuf {
+        dir.join(format!("{}truth.ply", self.truth_prefix))
+    }
+
+    /// One true surface, written when there are several.
+    pub fn truth_surface(&self, dir: &Path, surface: &str) -> PathBuf {
+        dir.join(format!("{}truth_{surface}.ply", self.truth_prefix))
+    }
+
+    pub fn description(&self, dir: &Path) -> PathBuf {
+        dir.join(format!("{}phantom.json", self.truth_prefix))
+    }
+
+    /// Every file written for these surfaces, in writing order.
+    pub fn files(&self, dir: &Path, surfaces: &[String]) -> Vec<PathBuf> {
+        let mut files = vec![self.sequence(dir), self.calibration(dir), self.truth(dir)];
+        if surfaces.len() > 1 {
+            files.extend(surfaces.iter().map(|s| self.truth_surface(dir, s)));
+        }
+        files.push(self.description(dir));
+        files
+    }
+}
+
 /// Writes `NAME.mha`, `NAME_config.xml`, `truth.ply` (+ `truth_NAME.ply` per surface when there are
-/// several) and `phantom.json` into `dir` (created if missing).
+/// several) and `phantom.json` into `dir` (created if missing); the truth meshes tagged RAS.
 pub fn write_simulation(
     dir: &Path,
     name: &str,
     sim: &Simulation,
     options: &SimulationOptions,
 ) -> Result<SimulationFiles> {
+    write_simulation_as(
+        dir,
+        &SimulationNames::plain(name),
+        sim,
+        options,
+        crate::io::Space::Ras,
+    )
+}
+
+/// [`write_simulation`] with the file names of `names` and the truth meshes written in `truth_space`.
+pub fn write_simulation_as(
+    dir: &Path,
+    names: &SimulationNames,
+    sim: &Simulation,
+    options: &SimulationOptions,
+    truth_space: crate::io::Space,
+) -> Result<SimulationFiles> {
+    let name = names.name.as_str();
     if name.is_empty() || name.contains(['/', '\\']) {
         return Err(Error::InvalidInput(format!(
             "simulation name {name:?} must be a plain file name"
         )));
     }
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    let sequence = dir.join(format!("{name}.mha"));
+    let sequence = names.sequence(dir);
     crate::io::write_sequence(&sequence, &sim.sequence, options.compress)?;
-    let calibration = dir.join(format!("{name}_config.xml"));
+    let calibration = names.calibration(dir);
     crate::io::write_calibration(&calibration, &sim.calibration_written)?;
-    let mut truth = vec![dir.join("truth.ply")];
-    crate::io::write_mesh(&truth[0], &merged_truth(&sim.truth))?;
+    let mut truth = vec![names.truth(dir)];
+    crate::io::write_mesh_in(&truth[0], &merged_truth(&sim.truth), truth_space)?;
     if sim.truth.len() > 1 {
         for (surface, mesh) in &sim.truth {
-            let path = dir.join(format!("truth_{surface}.ply"));
-            crate::io::write_mesh(&path, mesh)?;
+            let path = names.truth_surface(dir, surface);
+            crate::io::write_mesh_in(&path, mesh, truth_space)?;
             truth.push(path);
         }
     }
-    let description = dir.join("phantom.json");
-    let json = description_json(name, sim, options, &truth);
+    let description = names.description(dir);
+    let json = description_json(name, sim, options, &truth, truth_space);
     let text = serde_json::to_string_pretty(&json)
         .map_err(|e| Error::InvalidInput(format!("phantom.json: {e}")))?;
     crate::io::atomic::write_bytes_atomic(&description, (text + "\n").as_bytes())?;
@@ -114,6 +192,7 @@ fn description_json(
     sim: &Simulation,
     options: &SimulationOptions,
     truth_files: &[PathBuf],
+    truth_space: crate::io::Space,
 ) -> serde_json::Value {
     let file_name = |p: &PathBuf| {
         p.file_name()
@@ -132,6 +211,7 @@ fn description_json(
         "background_level": sim.background_level,
         "boundary_level": sim.boundary_level,
         "world_frame": "Tracker (= phantom frame at t = 0), mm",
+        "coordinates": {"frame": "Tracker", "space": truth_space},
         "phantom_bounds_mm": [sim.phantom_bounds.0.to_array(), sim.phantom_bounds.1.to_array()],
         "image_to_probe_true": mat4_to_row_major(&sim.calibration_true.image_to_probe),
         "image_to_probe_written": mat4_to_row_major(&sim.calibration_written.image_to_probe),

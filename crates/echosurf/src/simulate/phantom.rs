@@ -24,12 +24,15 @@ pub enum PhantomKind {
     Duck,
     /// Solid hand lying palm down: palm and five finger capsules.
     Hand,
+    /// A vertebra-like bone lying along x: a rounded body with a spinous ridge and two laminae on top.
+    /// Meant for the `bone` physics (strong echo, full shadow): its truth is the probe side only.
+    Bone,
     /// Any closed triangle mesh (STL/PLY/OBJ, mm), solid.
     Mesh(PathBuf),
 }
 
 impl PhantomKind {
-    /// Parses `sphere|ellipsoid|torus|duck|hand`, anything else is a mesh path.
+    /// Parses `sphere|ellipsoid|torus|duck|hand|bone`, anything else is a mesh path.
     pub fn parse(text: &str) -> PhantomKind {
         match text.to_ascii_lowercase().as_str() {
             "sphere" => PhantomKind::Sphere,
@@ -37,6 +40,7 @@ impl PhantomKind {
             "torus" => PhantomKind::Torus,
             "duck" => PhantomKind::Duck,
             "hand" => PhantomKind::Hand,
+            "bone" => PhantomKind::Bone,
             _ => PhantomKind::Mesh(PathBuf::from(text)),
         }
     }
@@ -49,6 +53,7 @@ impl PhantomKind {
             PhantomKind::Torus => "torus".into(),
             PhantomKind::Duck => "duck".into(),
             PhantomKind::Hand => "hand".into(),
+            PhantomKind::Bone => "bone".into(),
             PhantomKind::Mesh(p) => p.display().to_string(),
         }
     }
@@ -83,6 +88,12 @@ pub trait Phantom: Send + Sync + std::fmt::Debug {
     /// "extract the zero level of each `surfaces()` field".
     fn exact_meshes(&self) -> Option<Vec<(String, Mesh)>> {
         None
+    }
+
+    /// Whether only the probe side (outward normal with a positive z, toward the probe above) can be
+    /// imaged, as on a bone whose shadow hides the rest: its truth and sweeps are that side only.
+    fn probe_side_only(&self) -> bool {
+        false
     }
 }
 
@@ -296,6 +307,28 @@ impl Phantom for SolidPhantom {
     }
 }
 
+/// A solid seen from above only (a bone): the solid's geometry, the probe side's truth.
+#[derive(Debug)]
+pub struct ProbeSidePhantom(pub SolidPhantom);
+
+impl Phantom for ProbeSidePhantom {
+    fn distance_and_gradient(&self, p: DVec3) -> (f64, DVec3) {
+        self.0.distance_and_gradient(p)
+    }
+
+    fn bounds(&self) -> (DVec3, DVec3) {
+        self.0.bounds()
+    }
+
+    fn surfaces(&self) -> Vec<(String, &SurfaceFn)> {
+        self.0.surfaces()
+    }
+
+    fn probe_side_only(&self) -> bool {
+        true
+    }
+}
+
 /// A hollow object: material between the outer surface and its inward offset by `wall_mm`.
 pub struct ShellPhantom {
     outer: Box<SurfaceFn>,
@@ -417,6 +450,29 @@ pub fn hand() -> Sdf {
     sdf.union(thumb, 8.0)
 }
 
+/// A vertebra-like bone (mm, z up, along x): a rounded body 56 mm long, radius 8 mm, with a spinous
+/// ridge rising 7 mm above it and two laminae to the sides, blended smoothly. About 56 x 34 x 22 mm.
+pub fn bone() -> Sdf {
+    let body = Sdf::Capsule {
+        a: DVec3::new(-20.0, 0.0, -3.0),
+        b: DVec3::new(20.0, 0.0, -3.0),
+        radius: 8.0,
+    };
+    let ridge = Sdf::Ellipsoid {
+        center: DVec3::new(0.0, 0.0, 5.0),
+        radii: DVec3::new(22.0, 3.5, 7.0),
+        rotation: DMat3::IDENTITY,
+    };
+    let lamina = |side: f64| Sdf::Ellipsoid {
+        center: DVec3::new(0.0, side * 11.0, -1.0),
+        radii: DVec3::new(16.0, 6.0, 3.5),
+        rotation: DMat3::from_rotation_x(side * -15f64.to_radians()),
+    };
+    body.union(ridge, 4.0)
+        .union(lamina(1.0), 3.0)
+        .union(lamina(-1.0), 3.0)
+}
+
 /// Builds the phantom; mesh phantoms are read from their file (which must hold a closed manifold).
 pub fn build_phantom(kind: &PhantomKind) -> Result<Box<dyn Phantom>> {
     Ok(match kind {
@@ -446,6 +502,7 @@ pub fn build_phantom(kind: &PhantomKind) -> Result<Box<dyn Phantom>> {
         )),
         PhantomKind::Duck => Box::new(ShellPhantom::new(duck_outer(), DUCK_WALL_MM)),
         PhantomKind::Hand => Box::new(SolidPhantom::new("hand", hand())),
+        PhantomKind::Bone => Box::new(ProbeSidePhantom(SolidPhantom::new("bone", bone()))),
         PhantomKind::Mesh(path) => Box::new(mesh_phantom(path)?),
     })
 }
@@ -503,6 +560,7 @@ mod tests {
             PhantomKind::Torus,
             PhantomKind::Duck,
             PhantomKind::Hand,
+            PhantomKind::Bone,
         ] {
             let phantom = build_phantom(&kind).unwrap();
             check_gradient(phantom.as_ref(), &test_points());
@@ -549,7 +607,12 @@ mod tests {
 
     #[test]
     fn bounds_contain_the_material() {
-        for kind in [PhantomKind::Duck, PhantomKind::Hand, PhantomKind::Torus] {
+        for kind in [
+            PhantomKind::Duck,
+            PhantomKind::Hand,
+            PhantomKind::Torus,
+            PhantomKind::Bone,
+        ] {
             let phantom = build_phantom(&kind).unwrap();
             let (lo, hi) = phantom.bounds();
             let size = hi - lo;

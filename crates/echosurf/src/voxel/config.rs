@@ -310,8 +310,7 @@ fn hole_filling_from_node(node: roxmltree::Node, path: &Path) -> Result<HoleFill
 /// The `HoleFilling` elements of a PLUS device-set XML text (`path` names it in errors); empty
 /// when the configuration has none.
 pub fn hole_filling_from_xml(xml: &str, path: &Path) -> Result<HoleFilling> {
-    let doc = roxmltree::Document::parse(xml)
-        .map_err(|e| Error::format(path, FormatProblem::Corrupt, format!("XML: {e}")))?;
+    let doc = crate::io::plus_config::parse_xml(xml, path)?;
     let Some(vr) = find_volume_reconstruction(&doc) else {
         return Ok(HoleFilling::none());
     };
@@ -328,8 +327,7 @@ pub fn hole_filling_from_xml(xml: &str, path: &Path) -> Result<HoleFilling> {
 /// `HoleFilling` elements (`path` names the file in errors). Without a `VolumeReconstruction`
 /// element the defaults are returned.
 pub fn options_from_config_xml(xml: &str, path: &Path) -> Result<VoxelOptions> {
-    let doc = roxmltree::Document::parse(xml)
-        .map_err(|e| Error::format(path, FormatProblem::Corrupt, format!("XML: {e}")))?;
+    let doc = crate::io::plus_config::parse_xml(xml, path)?;
     let Some(vr) = find_volume_reconstruction(&doc) else {
         return Ok(VoxelOptions::default());
     };

@@ -564,8 +564,9 @@ fn check_memory_budget(
     element_type: ElementType,
 ) -> Result<()> {
     // Plus one frame's working set: grey levels (f32) and up to two copies of its pixel entries
-    // (32 bytes each when trilinear), small next to any grid that matters.
-    let frame_bytes = (sequence.width * sequence.height) as u128 * (4 + 2 * 32);
+    // (32 bytes each when trilinear), and the decoded sequence, which is in memory throughout.
+    let frame_bytes = (sequence.width * sequence.height) as u128 * (4 + 2 * 32)
+        + sequence.pixels.len() as u128 * sequence.pixels.element_type().size_bytes() as u128;
     let need = estimated_memory_bytes(geometry, element_type, options) + frame_bytes;
     let budget = options.memory_budget_bytes as u128;
     // Flat voxel indices are u32 in the splatting buffers.
@@ -574,7 +575,7 @@ fn check_memory_budget(
         return Ok(());
     }
     let grid = format!(
-        "a {}x{}x{} grid at {} mm spacing needs {} for values and accumulation buffers",
+        "a {}x{}x{} grid at {} mm spacing needs {} with its values, accumulation buffers and the decoded frames",
         geometry.dims[0],
         geometry.dims[1],
         geometry.dims[2],
@@ -607,8 +608,16 @@ fn check_memory_budget(
         factor *= 1.05;
     }
     Err(Error::ResourceLimit(format!(
-        "{grid}, over the memory budget of {}",
-        format_bytes(budget)
+        "{grid}, over the memory budget of {}{}",
+        format_bytes(budget),
+        if frame_bytes >= budget {
+            format!(
+                " (the decoded frames alone take {}: raise the memory budget)",
+                format_bytes(frame_bytes)
+            )
+        } else {
+            String::new()
+        }
     )))
 }
 
