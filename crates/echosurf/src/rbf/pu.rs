@@ -430,48 +430,42 @@ pub(crate) fn projected_cholesky_solve(
     for v in &reflectors {
         reflect(&mut g, v);
     }
-    // Cholesky of the negated trailing block (row-major, lower triangle in place).
+    // Cholesky of the negated trailing block by faer (blocked, SIMD), sequential inside the rayon task so
+    // the result does not depend on the thread count.
     let k = n - r;
-    let mut c = vec![0.0; k * k];
-    for i in 0..k {
-        for j in 0..=i {
-            c[i * k + j] = -m[(r + i) * n + (r + j)];
-        }
-    }
-    for j in 0..k {
-        let (row_j, rest) = c[j * k..].split_at_mut(k);
-        let diag = row_j[j] - row_j[..j].iter().map(|a| a * a).sum::<f64>();
-        if diag.is_nan() || diag <= 0.0 {
+    let mut c = faer::Mat::<f64>::from_fn(k, k, |i, j| -m[(r + i) * n + (r + j)]);
+    {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::cholesky::llt;
+        let params = Default::default();
+        let mut buffer = MemBuffer::new(llt::factor::cholesky_in_place_scratch::<f64>(
+            k,
+            faer::Par::Seq,
+            params,
+        ));
+        let factored = llt::factor::cholesky_in_place(
+            c.as_mut(),
+            Default::default(),
+            faer::Par::Seq,
+            MemStack::new(&mut buffer),
+            params,
+        );
+        if factored.is_err() {
             return None;
         }
-        let diag = diag.sqrt();
-        row_j[j] = diag;
-        for i in j + 1..k {
-            let row_i = &mut rest[(i - j - 1) * k..(i - j) * k];
-            let s = row_i[j]
-                - row_i[..j]
-                    .iter()
-                    .zip(&row_j[..j])
-                    .map(|(a, b)| a * b)
-                    .sum::<f64>();
-            row_i[j] = s / diag;
-        }
     }
-    let mut y: Vec<f64> = g[r..].iter().map(|v| -v).collect();
-    for i in 0..k {
-        let mut s = y[i];
-        for t in 0..i {
-            s -= c[i * k + t] * y[t];
-        }
-        y[i] = s / c[i * k + i];
-    }
-    for i in (0..k).rev() {
-        let mut s = y[i];
-        for t in i + 1..k {
-            s -= c[t * k + i] * y[t];
-        }
-        y[i] = s / c[i * k + i];
-    }
+    let mut rhs = faer::Mat::<f64>::from_fn(k, 1, |i, _| -g[r + i]);
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+        c.as_ref(),
+        rhs.as_mut(),
+        faer::Par::Seq,
+    );
+    faer::linalg::triangular_solve::solve_upper_triangular_in_place(
+        c.as_ref().transpose(),
+        rhs.as_mut(),
+        faer::Par::Seq,
+    );
+    let y: Vec<f64> = (0..k).map(|i| rhs[(i, 0)]).collect();
     let mut l = vec![0.0; n];
     l[r..].copy_from_slice(&y);
     for v in reflectors.iter().rev() {
