@@ -371,12 +371,20 @@ pub(crate) fn projected_cholesky_solve(
     smoothing: f64,
 ) -> Option<(Vec<f64>, Vec<f64>)> {
     let n = rel.len();
+    let (xs, ys, zs): (Vec<f64>, Vec<f64>, Vec<f64>) = (
+        rel.iter().map(|p| p.x).collect(),
+        rel.iter().map(|p| p.y).collect(),
+        rel.iter().map(|p| p.z).collect(),
+    );
     let mut m = vec![0.0; n * n];
-    for i in 0..n {
-        for j in 0..n {
-            m[i * n + j] = (rel[i] - rel[j]).length();
+    for (i, row) in m.chunks_exact_mut(n).enumerate() {
+        // Written as slices so the compiler vectorises the square roots.
+        let (xi, yi, zi) = (xs[i], ys[i], zs[i]);
+        for (((a, x), y), z) in row.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            let (dx, dy, dz) = (x - xi, y - yi, z - zi);
+            *a = (dx * dx + dy * dy + dz * dz).sqrt();
         }
-        m[i * n + i] -= smoothing;
+        row[i] -= smoothing;
     }
     // Householder vectors (unit, zero above row k) reducing U to upper triangular form.
     let mut cols: Vec<Vec<f64>> = (0..r)
@@ -412,17 +420,19 @@ pub(crate) fn projected_cholesky_solve(
     // M <- H_k M H_k for symmetric M: p = 2 M v, q = p - (v.p) v, M <- M - v q^T - q v^T.
     let mut p = vec![0.0; n];
     for v in &reflectors {
-        for i in 0..n {
-            let row = &m[i * n..(i + 1) * n];
-            p[i] = 2.0 * row.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
+        // p = 2 M v as a sum of rows (M is symmetric): axpy loops vectorise, a dot product would not.
+        p.iter_mut().for_each(|a| *a = 0.0);
+        for (row, vi) in m.chunks_exact(n).zip(v) {
+            let scale = 2.0 * vi;
+            for (a, mij) in p.iter_mut().zip(row) {
+                *a += scale * mij;
+            }
         }
         let vp: f64 = v.iter().zip(&p).map(|(a, b)| a * b).sum();
         let q: Vec<f64> = p.iter().zip(v).map(|(pi, vi)| pi - vp * vi).collect();
-        for i in 0..n {
-            let row = &mut m[i * n..(i + 1) * n];
-            let (vi, qi) = (v[i], q[i]);
-            for j in 0..n {
-                row[j] -= vi * q[j] + qi * v[j];
+        for ((row, vi), qi) in m.chunks_exact_mut(n).zip(v).zip(&q) {
+            for ((a, qj), vj) in row.iter_mut().zip(&q).zip(v) {
+                *a -= vi * qj + qi * vj;
             }
         }
     }
@@ -472,13 +482,14 @@ pub(crate) fn projected_cholesky_solve(
         reflect(&mut l, v);
     }
     // d = U^T (f - (A - wI) l), exact because U^T U = I on these points.
-    let mut residual = f.to_vec();
-    for i in 0..n {
-        let mut s = -smoothing * l[i];
-        for j in 0..n {
-            s += (rel[i] - rel[j]).length() * l[j];
+    let mut residual: Vec<f64> = f.iter().zip(&l).map(|(fi, li)| fi + smoothing * li).collect();
+    for (j, lj) in l.iter().enumerate() {
+        // residual -= l_j A e_j (A symmetric), as an axpy the compiler vectorises.
+        let (xj, yj, zj) = (xs[j], ys[j], zs[j]);
+        for (((a, x), y), z) in residual.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            let (dx, dy, dz) = (x - xj, y - yj, z - zj);
+            *a -= lj * (dx * dx + dy * dy + dz * dz).sqrt();
         }
-        residual[i] -= s;
     }
     let d: Vec<f64> = (0..r)
         .map(|kk| (0..n).map(|i| u[i * r + kk] * residual[i]).sum())
