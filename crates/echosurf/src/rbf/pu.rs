@@ -482,7 +482,11 @@ pub(crate) fn projected_cholesky_solve(
         reflect(&mut l, v);
     }
     // d = U^T (f - (A - wI) l), exact because U^T U = I on these points.
-    let mut residual: Vec<f64> = f.iter().zip(&l).map(|(fi, li)| fi + smoothing * li).collect();
+    let mut residual: Vec<f64> = f
+        .iter()
+        .zip(&l)
+        .map(|(fi, li)| fi + smoothing * li)
+        .collect();
     for (j, lj) in l.iter().enumerate() {
         // residual -= l_j A e_j (A symmetric), as an axpy the compiler vectorises.
         let (xj, yj, zj) = (xs[j], ys[j], zs[j]);

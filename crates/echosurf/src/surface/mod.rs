@@ -138,7 +138,10 @@ pub struct LevelStats {
     pub newton_failed_vertices: usize,
     /// Largest |s - level| at the best point Newton reached, over those vertices (before bisection).
     pub newton_failed_max_error: f64,
-    /// Vertices that neither Newton nor the bisection fallback brought within `surface_tolerance_mm`.
+    /// Of those, vertices the gradient and axis lines found no bracket for (a fold or saddle of the
+    /// field), put on the level by bisecting the lattice edge their vertex was interpolated on.
+    pub edge_bisected_vertices: usize,
+    /// Vertices that neither Newton nor the bisection fallbacks brought within `surface_tolerance_mm`.
     pub unconverged_vertices: usize,
     /// Output vertices with |s(v) - level| > [`LEVEL_TOLERANCE`] (measured on the final mesh; they
     /// are flagged here, not hidden).
@@ -250,23 +253,38 @@ pub fn extract_surfaces_with_stats(
             unconverged_vertices: 0,
             newton_failed_vertices: 0,
             newton_failed_max_error: 0.0,
+            edge_bisected_vertices: 0,
             off_level_vertices: 0,
             max_level_error: 0.0,
             joined_pinched_vertices: 0,
             split_pinched_vertices: 0,
             folded_triangles: 0,
         };
-        let (mut vertices, mut normals, projection) =
-            project_onto_surface(field, level, merged.positions, h, options, &mut counter);
+        let edges: Vec<(DVec3, DVec3)> = merged
+            .input_index
+            .iter()
+            .map(|&i| raw.edges[i as usize])
+            .collect();
+        let (mut vertices, mut normals, projection) = project_onto_surface(
+            field,
+            level,
+            merged.positions,
+            &edges,
+            h,
+            options,
+            &mut counter,
+        );
         level_stats.unconverged_vertices = projection.unconverged;
         level_stats.newton_failed_vertices = projection.newton_failed;
         level_stats.newton_failed_max_error = projection.newton_failed_max_error;
+        level_stats.edge_bisected_vertices = projection.edge_bisected;
         level_stats.folded_triangles = untangle(
             field,
             level,
             &mut vertices,
             &mut normals,
             &merged.triangles,
+            &edges,
             h,
             options,
             &mut counter,
@@ -339,12 +357,15 @@ fn validate(levels: &[f64], options: &SurfaceOptions) -> Result<()> {
 /// A step is capped at one lattice spacing (the vertex starts within about a cell of the surface, so a
 /// longer step means a poor gradient). On a rough field (an interpolating fit of speckle) Newton can
 /// wander or cycle; such a vertex restarts from the best point Newton visited and is put on the level by
-/// bisection along its gradient line ([`bisect_onto_level`]). Returns positions, unit normals toward
+/// bisection along its gradient line ([`bisect_onto_level`]); where that finds no bracket (a fold or
+/// saddle of the field near the vertex), by bisection of the lattice edge its marching-tetrahedra vertex
+/// came from (`edges[i]`, whose end values straddle the level). Returns positions, unit normals toward
 /// lower values (the mesh's face normals where the gradient vanishes) and what happened.
 fn project_onto_surface(
     field: &dyn ScalarField,
     level: f64,
     mut positions: Vec<DVec3>,
+    edges: &[(DVec3, DVec3)],
     spacing_mm: f64,
     options: &SurfaceOptions,
     counter: &mut lattice::EvalCounter,
@@ -416,23 +437,111 @@ fn project_onto_surface(
             .collect();
         let (moved, values, gradients) =
             bisect_onto_level(field, level, &starts, spacing_mm, counter);
+        let mut missed = Vec::new();
         for (k, &i) in failed.iter().enumerate() {
             positions[i as usize] = moved[k];
             normals[i as usize] = -gradients[k];
             let g = gradients[k].length();
             let miss = (values[k] - level).abs();
             if miss.is_nan() || miss > options.surface_tolerance_mm * g {
-                outcome.unconverged += 1;
+                missed.push((i, miss));
+            }
+        }
+        if !missed.is_empty() {
+            outcome.edge_bisected = missed.len();
+            let segments: Vec<(DVec3, DVec3)> =
+                missed.iter().map(|&(i, _)| edges[i as usize]).collect();
+            let on_edge = bisect_edges(field, level, &segments, counter);
+            for (&(i, miss), found) in missed.iter().zip(on_edge) {
+                match found {
+                    Some((p, v, g))
+                        if (v - level).abs() <= options.surface_tolerance_mm * g.length()
+                            || miss.is_nan()
+                            || (v - level).abs() < miss =>
+                    {
+                        positions[i as usize] = p;
+                        normals[i as usize] = -g;
+                        if !((v - level).abs() <= options.surface_tolerance_mm * g.length()) {
+                            outcome.unconverged += 1;
+                        }
+                    }
+                    _ => outcome.unconverged += 1,
+                }
             }
         }
     }
     (positions, normals, outcome)
 }
 
+/// Bisection steps on a lattice edge (length at most sqrt(3) spacings): the bracket shrinks below 1e-14
+/// of it.
+const EDGE_BISECTION_STEPS: usize = 48;
+
+/// For each segment whose end values straddle `level`: the point of the bracket bisection ends on
+/// (the end of the last bracket nearer the level), with its value and gradient; None where the ends do
+/// not straddle it (the field changed since the lattice was evaluated: not expected).
+fn bisect_edges(
+    field: &dyn ScalarField,
+    level: f64,
+    segments: &[(DVec3, DVec3)],
+    counter: &mut lattice::EvalCounter,
+) -> Vec<Option<(DVec3, f64, DVec3)>> {
+    let ends: Vec<DVec3> = segments.iter().flat_map(|&(a, b)| [a, b]).collect();
+    let (ev, _) = lattice::evaluate_gradients(field, &ends, counter);
+    // Bracket (t_a, value_a, t_b, value_b) along a -> b, values minus the level.
+    let mut brackets: Vec<Option<(f64, f64, f64, f64)>> = (0..segments.len())
+        .map(|k| {
+            let (a, b) = (ev[2 * k] - level, ev[2 * k + 1] - level);
+            (a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0)).then_some((0.0, a, 1.0, b))
+        })
+        .collect();
+    let active: Vec<usize> = (0..segments.len())
+        .filter(|&k| brackets[k].is_some())
+        .collect();
+    let at = |k: usize, t: f64| segments[k].0 + (segments[k].1 - segments[k].0) * t;
+    for _ in 0..EDGE_BISECTION_STEPS {
+        if active.is_empty() {
+            break;
+        }
+        let mids: Vec<DVec3> = active
+            .iter()
+            .map(|&k| {
+                let (ta, _, tb, _) = brackets[k].expect("active");
+                at(k, 0.5 * (ta + tb))
+            })
+            .collect();
+        let (mv, _) = lattice::evaluate_gradients(field, &mids, counter);
+        for (m, &k) in active.iter().enumerate() {
+            let (ta, va, tb, vb) = brackets[k].expect("active");
+            let (t, v) = (0.5 * (ta + tb), mv[m] - level);
+            brackets[k] = Some(if !v.is_finite() || (v <= 0.0) == (va <= 0.0) {
+                (t, v, tb, vb)
+            } else {
+                (ta, va, t, v)
+            });
+        }
+    }
+    let finals: Vec<DVec3> = active
+        .iter()
+        .map(|&k| {
+            let (ta, va, tb, vb) = brackets[k].expect("active");
+            at(k, if va.abs() <= vb.abs() { ta } else { tb })
+        })
+        .collect();
+    let (values, gradients) = lattice::evaluate_gradients(field, &finals, counter);
+    let mut out = vec![None; segments.len()];
+    for (m, &k) in active.iter().enumerate() {
+        out[k] = Some((finals[m], values[m], gradients[m]));
+    }
+    out
+}
+
 /// What [`project_onto_surface`] did.
 #[derive(Debug, Default, Clone, Copy)]
 struct Projection {
     newton_failed: usize,
+    /// Vertices the gradient/axis bisection left off the level, bisected on their lattice edge.
+    edge_bisected: usize,
     newton_failed_max_error: f64,
     unconverged: usize,
 }
@@ -567,6 +676,7 @@ fn untangle(
     vertices: &mut [DVec3],
     normals: &mut [DVec3],
     triangles: &[[u32; 3]],
+    edges: &[(DVec3, DVec3)],
     spacing_mm: f64,
     options: &SurfaceOptions,
     counter: &mut lattice::EvalCounter,
@@ -603,9 +713,32 @@ fn untangle(
                 n.iter().map(|&w| vertices[w as usize]).sum::<DVec3>() / n.len().max(1) as f64
             })
             .collect();
-        let (positions, new_normals, _) =
-            project_onto_surface(field, level, starts, spacing_mm, options, counter);
+        let moved_edges: Vec<(DVec3, DVec3)> = moved.iter().map(|&v| edges[v as usize]).collect();
+        let (positions, new_normals, _) = project_onto_surface(
+            field,
+            level,
+            starts,
+            &moved_edges,
+            spacing_mm,
+            options,
+            counter,
+        );
+        // A move that would leave the vertex farther off the level than it is stays undone: a folded
+        // triangle is counted, an off-level vertex would break the surface's contract.
+        let (old_values, _) = lattice::evaluate_gradients(
+            field,
+            &moved
+                .iter()
+                .map(|&v| vertices[v as usize])
+                .collect::<Vec<_>>(),
+            counter,
+        );
+        let (new_values, _) = lattice::evaluate_gradients(field, &positions, counter);
         for (k, &v) in moved.iter().enumerate() {
+            let (was, now) = ((old_values[k] - level).abs(), (new_values[k] - level).abs());
+            if now > LEVEL_TOLERANCE && !(now <= was) {
+                continue;
+            }
             vertices[v as usize] = positions[k];
             normals[v as usize] = new_normals[k];
         }
