@@ -23,55 +23,6 @@ fn band(count: usize) -> (Vec<DVec3>, Vec<f64>) {
     )
 }
 
-/// `s(x)` from the definition of the fitted model: for a global spline the trend plus the sum over all
-/// centres; for partition of unity the Wendland-weighted blend over *all* patches of their local sums.
-fn reference_value(model: &RbfModel, x: DVec3) -> f64 {
-    match model.partition_of_unity() {
-        None => {
-            let (c0, c, origin) = model.trend();
-            c0 + c.dot(x - origin)
-                + model
-                    .centres()
-                    .iter()
-                    .zip(model.coefficients())
-                    .map(|(p, l)| l * (x - *p).length())
-                    .sum::<f64>()
-        }
-        Some(pu) => {
-            let xc = x.clamp(pu.root_lo, pu.root_hi);
-            let (mut sum_w, mut sum_ws) = (0.0, 0.0);
-            for j in 0..pu.patches() {
-                let t = (xc - pu.support_centre[j]).abs() / pu.support_half[j];
-                if t.max_element() >= 1.0 {
-                    continue;
-                }
-                let phi = |t: f64| (1.0 - t).powi(4) * (4.0 * t + 1.0);
-                let w = phi(t.x) * phi(t.y) * phi(t.z);
-                let rel = x - pu.support_centre[j];
-                let mut s = pu.constant[j] + pu.linear[j].dot(rel);
-                for k in pu.offsets[j]..pu.offsets[j + 1] {
-                    let d = rel - DVec3::new(pu.xs[k], pu.ys[k], pu.zs[k]);
-                    s += pu.coefficients[k] * d.length();
-                }
-                sum_w += w;
-                sum_ws += w * s;
-            }
-            sum_ws / sum_w
-        }
-    }
-}
-
-/// Largest |f_i - s(x_i)| over the merged samples, by [`reference_value`] (w = 0).
-fn reference_max_misfit(model: &RbfModel, pts: &[DVec3], vals: &[f64], merge_mm: f64) -> f64 {
-    let (pts, vals) = merge_near_duplicates(pts, vals, merge_mm);
-    pts.par_iter()
-        .zip(&vals)
-        .map(|(p, f)| (f - reference_value(model, *p)).abs())
-        .reduce(|| 0.0, f64::max)
-}
-
-use rayon::prelude::*;
-
 fn options(solver: SolverChoice, accuracy: f64) -> FitOptions {
     FitOptions {
         smoothing: 0.0,
@@ -92,7 +43,7 @@ fn partition_of_unity_meets_the_accuracy_at_every_band_pixel() {
             ..options(SolverChoice::PartitionOfUnity, 1.0)
         };
         let (model, report) = fit(&pts, &vals, &opts, &NoProgress).expect("pu fit");
-        let misfit = reference_max_misfit(&model, &pts, &vals, opts.merge_distance_mm);
+        let misfit = definition_max_misfit(&model, &pts, &vals, opts.merge_distance_mm);
         assert!(
             misfit <= 1.0,
             "leaf {leaf}: max misfit {misfit} by the reference evaluation (report {})",
@@ -114,7 +65,7 @@ fn every_solver_meets_the_accuracy_or_refuses_on_3000_band_pixels() {
         let opts = options(solver, 1.0);
         match fit(&pts, &vals, &opts, &NoProgress) {
             Ok((model, report)) => {
-                let misfit = reference_max_misfit(&model, &pts, &vals, opts.merge_distance_mm);
+                let misfit = definition_max_misfit(&model, &pts, &vals, opts.merge_distance_mm);
                 assert!(misfit <= 1.0, "{solver:?}: reference max misfit {misfit}");
                 assert!(report.max_residual <= 1.0, "{solver:?}: {report:?}");
             }

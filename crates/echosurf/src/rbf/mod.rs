@@ -31,7 +31,8 @@ use rand_chacha::ChaCha8Rng;
 
 pub use bench_data::{
     BAND_DILATION_PX, BAND_SMOOTHING_SIGMA_PX, BAND_THRESHOLD_GREY, ScalingRow, band_pixels,
-    bench_fit_scaling, simulated_band_pixels, ultrasound_like_samples,
+    bench_fit_scaling, definition_max_misfit, definition_value, simulated_band_pixels,
+    ultrasound_like_samples,
 };
 pub use fast::FastBreakdown;
 pub use merge::merge_near_duplicates;
