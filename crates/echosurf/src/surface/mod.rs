@@ -461,7 +461,8 @@ fn project_onto_surface(
                     {
                         positions[i as usize] = p;
                         normals[i as usize] = -g;
-                        if !((v - level).abs() <= options.surface_tolerance_mm * g.length()) {
+                        let now = (v - level).abs();
+                        if now.is_nan() || now > options.surface_tolerance_mm * g.length() {
                             outcome.unconverged += 1;
                         }
                     }
@@ -736,7 +737,7 @@ fn untangle(
         let (new_values, _) = lattice::evaluate_gradients(field, &positions, counter);
         for (k, &v) in moved.iter().enumerate() {
             let (was, now) = ((old_values[k] - level).abs(), (new_values[k] - level).abs());
-            if now > LEVEL_TOLERANCE && !(now <= was) {
+            if now.is_nan() || (now > LEVEL_TOLERANCE && now > was) {
                 continue;
             }
             vertices[v as usize] = positions[k];
