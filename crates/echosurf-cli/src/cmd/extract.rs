@@ -611,9 +611,12 @@ fn print_summary(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
     }
     if let Some(fit) = &r.fit {
         outln!(
-            "fit: w = {} mm, max residual {:.2} grey, {} iterations",
+            "fit: w = {} mm, max system residual {:.2} grey, data misfit rms {:.2} max {:.2} grey, \
+             {} iterations",
             r.parameters.smoothing_mm,
             fit.max_residual,
+            fit.rms_data_misfit,
+            fit.max_data_misfit,
             fit.iterations
         );
     }

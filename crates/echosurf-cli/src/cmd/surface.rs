@@ -105,6 +105,23 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             path.display()
         );
     }
+    for l in &stats.levels {
+        outln!(
+            "iso {}: vertices within {:.4} grey of the level at worst",
+            l.level,
+            l.max_level_error
+        );
+        if l.off_level_vertices > 0 {
+            eprintln!(
+                "warning: iso {}: {} of {} vertices are more than {} grey off the level (worst {:.2})",
+                l.level,
+                l.off_level_vertices,
+                l.vertices,
+                echosurf::surface::LEVEL_TOLERANCE,
+                l.max_level_error
+            );
+        }
+    }
     outln!(
         "{} field evaluations ({:.1} per triangle)",
         stats.value_evaluations + stats.gradient_evaluations,

@@ -775,6 +775,35 @@ pub fn frame_outlines(
         .collect()
 }
 
+/// Fits whose rms data misfit exceeds this fraction of the samples' grey range are implausible.
+pub const IMPLAUSIBLE_MISFIT_FRACTION: f64 = 0.1;
+
+/// A warning when the fit's rms data misfit `|f_i - s(x_i)|` is more than
+/// [`IMPLAUSIBLE_MISFIT_FRACTION`] of the samples' grey range: the smoothing cannot explain that much,
+/// the samples contradict each other where frames cross (a wrong calibration or tracking is the usual
+/// reason).
+pub fn implausible_fit_warning(report: &crate::rbf::FitReport, values: &[f64]) -> Option<String> {
+    let (lo, hi) = values
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    let range = hi - lo;
+    (range > 0.0 && report.rms_data_misfit > IMPLAUSIBLE_MISFIT_FRACTION * range).then(|| {
+        format!(
+            "the fit misses the samples by {:.1} grey rms (max {:.1}) at smoothing {} mm, more than \
+             {:.0} % of their grey range {:.0}-{:.0}: crossing frames disagree, most often because \
+             the calibration (or tracking) does not belong to this sweep",
+            report.rms_data_misfit,
+            report.max_data_misfit,
+            report.smoothing,
+            100.0 * IMPLAUSIBLE_MISFIT_FRACTION,
+            lo,
+            hi
+        )
+    })
+}
+
 /// The whole pipeline on an in-memory sequence.
 pub fn extract(
     sequence: &TrackedSequence,
@@ -818,6 +847,9 @@ pub fn extract(
     let (model, fit_report) = meter.stage("fit", || {
         crate::rbf::fit(positions, &values, &options.fit, progress)
     })?;
+    if let Some(w) = implausible_fit_warning(&fit_report, &values) {
+        warnings.push(w);
+    }
 
     let spacing = median_frame_spacing_mm(sequence, &prepared.poses);
     let trust_distance_mm = options
@@ -842,6 +874,19 @@ pub fn extract(
     let (mut meshes, surface_stats) = meter.stage("surface", || {
         extract_surfaces_with_stats(&model, &levels, &domain, &surface_options)
     })?;
+    for l in &surface_stats.levels {
+        if l.off_level_vertices > 0 {
+            warnings.push(format!(
+                "iso-level {}: {} of {} vertices could not be put within {} grey of the level (worst \
+                 {:.2}); they are kept and counted in the report (surface.levels.off_level_vertices)",
+                l.level,
+                l.off_level_vertices,
+                l.vertices,
+                crate::surface::LEVEL_TOLERANCE,
+                l.max_level_error
+            ));
+        }
+    }
     let mut sheets: Vec<SheetUsed> = levels
         .iter()
         .map(|&level| SheetUsed::iso_surface(level))

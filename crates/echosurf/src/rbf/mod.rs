@@ -29,7 +29,11 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 
-pub use bench_data::{ScalingRow, bench_fit_scaling, ultrasound_like_samples};
+pub use bench_data::{
+    BAND_DILATION_PX, BAND_SMOOTHING_SIGMA_PX, BAND_THRESHOLD_GREY, ScalingRow, band_pixels,
+    bench_fit_scaling, definition_max_misfit, definition_value, simulated_band_pixels,
+    ultrasound_like_samples,
+};
 pub use fast::FastBreakdown;
 pub use merge::merge_near_duplicates;
 pub use model::RbfModel;
@@ -130,6 +134,11 @@ pub struct FitReport {
     /// over all (merged) samples, which includes the smoothing misfit.
     pub max_residual: f64,
     pub rms_residual: f64,
+    /// Largest and rms data misfit `|f_i - s(x_i)|` of the final model over the (merged) samples, grey
+    /// levels: at w > 0 the smoothing's intended misfit; far above the speckle it says the samples
+    /// contradict each other (frames placed wrongly, e.g. a calibration of another probe).
+    pub max_data_misfit: f64,
+    pub rms_data_misfit: f64,
     /// Number of linear-trend directions kept (4 normally; 3 for coplanar samples, ...); for partition of
     /// unity the smallest over the local fits.
     pub trend_rank: usize,
@@ -164,6 +173,8 @@ pub fn fit(
         reduction_rounds: 0,
         max_residual: 0.0,
         rms_residual: 0.0,
+        max_data_misfit: 0.0,
+        rms_data_misfit: 0.0,
         trend_rank: 0,
         solver: options.solver,
         smoothing: options.smoothing,
@@ -172,10 +183,38 @@ pub fn fit(
         fast_breakdown: None,
     };
     let model = if reduce {
-        greedy_reduction(&pts, &vals, options, progress, &mut report)?
+        let model = greedy_reduction(&pts, &vals, options, progress, &mut report)?;
+        let fitted = model.values(&pts);
+        let misfit: Vec<f64> = fitted.iter().zip(&vals).map(|(s, f)| f - s).collect();
+        report.max_data_misfit = misfit.iter().fold(0.0, |m, e| m.max(e.abs()));
+        report.rms_data_misfit =
+            (misfit.iter().map(|e| e * e).sum::<f64>() / misfit.len() as f64).sqrt();
+        model
     } else {
         let sub = solve_subset(&pts, &vals, options, None, progress)?;
         absorb(&mut report, &sub);
+        if sub.solver == SolverChoice::PartitionOfUnity {
+            (report.max_data_misfit, report.rms_data_misfit) = sub.data_misfit;
+        } else {
+            // Measured afresh from the final model (its own evaluator), not the solver's vectors.
+            let [max_r, rms_r, max_m, rms_m] =
+                global_system_residual(&sub.model, &pts, &vals, options.smoothing);
+            (report.max_residual, report.rms_residual) = (max_r, rms_r);
+            (report.max_data_misfit, report.rms_data_misfit) = (max_m, rms_m);
+        }
+        if report.max_residual.is_nan() || report.max_residual > options.accuracy {
+            return Err(Error::Numerical(format!(
+                "RBF fit ({:?} solver, {} samples, smoothing {} mm): the largest system residual \
+                 |f_i - s(x_i) + w l_i| of the fitted model is {:.4} grey levels, above the \
+                 requested accuracy {}; {}",
+                sub.solver,
+                pts.len(),
+                options.smoothing,
+                report.max_residual,
+                options.accuracy,
+                accuracy_advice(sub.solver)
+            )));
+        }
         sub.model
     };
     report.centres = model.coefficients().len();
@@ -185,6 +224,39 @@ pub fn fit(
     }
     report.fit_seconds = start.elapsed().as_secs_f64();
     Ok((model, report))
+}
+
+/// What to change when a solver misses the accuracy.
+fn accuracy_advice(solver: SolverChoice) -> &'static str {
+    match solver {
+        SolverChoice::PartitionOfUnity => {
+            "raise --accuracy or --smoothing, or use --solver fast (the global spline)"
+        }
+        SolverChoice::Fast => {
+            "raise --accuracy or --smoothing (the model's evaluation error is part of the figure)"
+        }
+        _ => "raise --smoothing (near-coincident samples with different values) or --accuracy",
+    }
+}
+
+/// `[max, rms]` over the samples of the system residual `|f_i - s(x_i) + w l_i|`, then `[max, rms]` of
+/// the data misfit `|f_i - s(x_i)|`, for a global model whose centres are `pts`, with `s` the model's
+/// own evaluation.
+fn global_system_residual(model: &RbfModel, pts: &[DVec3], vals: &[f64], w: f64) -> [f64; 4] {
+    let fitted = model.values(pts);
+    let (mut max_r, mut sum_sq, mut max_m, mut misfit_sq) = (0.0f64, 0.0, 0.0f64, 0.0);
+    for ((s, f), l) in fitted.iter().zip(vals).zip(model.coefficients()) {
+        let e = f - s + w * l;
+        max_r = max_r.max(e.abs());
+        sum_sq += e * e;
+        max_m = max_m.max((f - s).abs());
+        misfit_sq += (f - s) * (f - s);
+    }
+    if !max_r.is_finite() {
+        max_r = f64::INFINITY;
+    }
+    let n = pts.len() as f64;
+    [max_r, (sum_sq / n).sqrt(), max_m, (misfit_sq / n).sqrt()]
 }
 
 fn validate(points: &[DVec3], values: &[f64], options: &FitOptions) -> Result<()> {
@@ -272,6 +344,8 @@ struct SubsetFit {
     solver: SolverChoice,
     solver_bytes: usize,
     fast_breakdown: Option<FastBreakdown>,
+    /// Partition of unity: (max, rms) data misfit measured with the residuals; unused otherwise.
+    data_misfit: (f64, f64),
 }
 
 /// Solves the full system on `pts` (every point a centre).
@@ -303,7 +377,9 @@ fn solve_subset(
                 .collect();
             (vec![0.0; n], d, 0, 0.0, 0.0, 0)
         } else if solver == SolverChoice::Direct {
-            progress.start("fit: dense solve", 1);
+            check_dense_memory(n + basis.rank())?;
+            // One LU, no intermediate progress to report: a spinner.
+            progress.start("fit: dense solve", 0);
             let (l, d) = direct::solve_dense(pts, vals, options.smoothing, &basis)?;
             progress.finish();
             let (max_r, rms_r) = dense_residual(pts, vals, &l, &d, &basis, options.smoothing);
@@ -350,7 +426,29 @@ fn solve_subset(
         solver,
         solver_bytes,
         fast_breakdown,
+        data_misfit: (0.0, 0.0),
     })
+}
+
+/// Bytes the dense solve holds: the saddle matrix and faer's LU copy of it, `2 (n + r)^2` f64.
+pub fn dense_solve_bytes(size: usize) -> u128 {
+    2 * (size as u128) * (size as u128) * 8
+}
+
+/// Refuses a dense solve that would not fit the memory budget (half the machine's memory).
+fn check_dense_memory(size: usize) -> Result<()> {
+    let needed = dense_solve_bytes(size);
+    let budget = crate::budget::default_memory_budget_bytes();
+    if needed > u128::from(budget) {
+        return Err(Error::ResourceLimit(format!(
+            "dense RBF solve of {size} unknowns needs {:.1} GB (two {size} x {size} f64 matrices), \
+             more than the {:.1} GB memory budget (half the machine's memory); use --solver pu or \
+             --solver fast, or fewer samples",
+            needed as f64 / 1e9,
+            budget as f64 / 1e9
+        )));
+    }
+    Ok(())
 }
 
 fn solve_partition_of_unity(
@@ -359,41 +457,40 @@ fn solve_partition_of_unity(
     options: &FitOptions,
     progress: &dyn Progress,
 ) -> Result<SubsetFit> {
-    progress.start("fit: partition of unity", 1);
     let params = pu::PuParams {
         leaf_points: options.pu_leaf_points,
         overlap: options.pu_overlap,
         min_overlap_mm: options.pu_min_overlap_mm,
     };
-    let (pu_model, stats) =
-        pu::fit_pu(pts, vals, options.smoothing, options.eval_accuracy, params)?;
-    progress.finish();
+    let (pu_model, stats) = pu::fit_pu(
+        pts,
+        vals,
+        options.smoothing,
+        options.eval_accuracy,
+        params,
+        progress,
+    )?;
     let size = stats.max_patch_points + 4;
     let solver_bytes =
         pu_model.memory_bytes() + rayon::current_num_threads() * size * (size + 1) * 8;
     let model = RbfModel::from_partition_of_unity(pu_model);
-    // No global system: report the measured misfit of the blended model at every sample.
-    let fitted = model.values(pts);
-    let (mut max_r, mut sum_sq) = (0.0f64, 0.0);
-    for (s, f) in fitted.iter().zip(vals) {
-        let e = f - s;
-        max_r = max_r.max(e.abs());
-        sum_sq += e * e;
-    }
-    if !max_r.is_finite() {
-        return Err(Error::Numerical(
-            "partition-of-unity fit produced non-finite values".into(),
-        ));
+    if stats.foreign_weighted_samples > 0 {
+        return Err(Error::Numerical(format!(
+            "partition-of-unity fit: {} samples are weighted by patches not fitted to them (a bug in \
+             the partition; use --solver fast)",
+            stats.foreign_weighted_samples
+        )));
     }
     Ok(SubsetFit {
         model,
         iterations: 0,
-        max_residual: max_r,
-        rms_residual: (sum_sq / pts.len() as f64).sqrt(),
+        max_residual: stats.max_residual,
+        rms_residual: stats.rms_residual,
         trend_rank: stats.min_trend_rank,
         solver: SolverChoice::PartitionOfUnity,
         solver_bytes,
         fast_breakdown: None,
+        data_misfit: (stats.max_data_misfit, stats.rms_data_misfit),
     })
 }
 
@@ -495,6 +592,8 @@ fn greedy_reduction(
     }
 }
 
+#[cfg(test)]
+mod contract_tests;
 #[cfg(test)]
 mod pu_tests;
 #[cfg(test)]

@@ -129,7 +129,6 @@ impl RbfModel {
         }
     }
 
-    #[cfg(test)]
     pub(crate) fn partition_of_unity(&self) -> Option<&PuModel> {
         match &self.kind {
             ModelKind::PartitionOfUnity(pu) => Some(pu),

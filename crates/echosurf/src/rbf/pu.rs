@@ -40,6 +40,8 @@ const ROOT_MARGIN_FRACTION: f64 = 0.05;
 const ROOT_MARGIN_MM: f64 = 2.0;
 /// The weight support extends this share of the fit patch's expansion beyond the cell (see module doc).
 const SUPPORT_SHARE: f64 = 0.3;
+/// Halvings of the support share when a support box holds more samples than the patch cap.
+const SUPPORT_NARROWING_STEPS: usize = 8;
 /// Support boxes per BVH leaf.
 const BVH_LEAF: usize = 4;
 const NO_CHILD: u32 = u32::MAX;
@@ -83,6 +85,14 @@ pub(crate) struct PuStats {
     /// Smallest trend rank over the local fits.
     pub min_trend_rank: usize,
     pub max_patch_points: usize,
+    /// Largest and rms blended system residual over the samples (see [`PuModel::system_residuals`]).
+    pub max_residual: f64,
+    pub rms_residual: f64,
+    /// Largest and rms data misfit `|f_i - s(x_i)|` (includes the smoothing's intended misfit).
+    pub max_data_misfit: f64,
+    pub rms_data_misfit: f64,
+    /// Samples where a patch whose weight is positive was not fitted to them (0 for a sound partition).
+    pub foreign_weighted_samples: usize,
 }
 
 /// Fits the partition-of-unity model to `points` (already merged and validated).
@@ -92,6 +102,7 @@ pub(crate) fn fit_pu(
     smoothing: f64,
     eval_accuracy: f64,
     params: PuParams,
+    progress: &dyn crate::progress::Progress,
 ) -> Result<(PuModel, PuStats)> {
     if points.is_empty() || points.len() != values.len() {
         return Err(Error::InvalidInput(
@@ -115,6 +126,8 @@ pub(crate) fn fit_pu(
     let leaves: Vec<u32> = (0..tree.nodes.len() as u32)
         .filter(|&k| tree.nodes[k as usize].left == NO_CHILD)
         .collect();
+    progress.start("fit: partition of unity, patches", leaves.len() as u64);
+    let done = std::sync::atomic::AtomicU64::new(0);
     let patches: Vec<Result<LocalFit>> = leaves
         .par_iter()
         .map(|&k| {
@@ -128,21 +141,60 @@ pub(crate) fn fit_pu(
                 half *= 1.5;
                 members = tree.in_box(points, centre - half, centre + half);
             }
+            let mut support_half = cell_half + (half - cell_half) * SUPPORT_SHARE;
             if members.len() > max_patch {
-                let mut by_distance: Vec<(f64, u32)> = members
-                    .iter()
-                    .map(|&i| ((points[i as usize] - centre).length_squared(), i))
-                    .collect();
-                by_distance.select_nth_unstable_by(max_patch - 1, |a, b| {
-                    a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
-                });
-                members = by_distance[..max_patch].iter().map(|&(_, i)| i).collect();
-                members.sort_unstable();
+                // The local fit is used wherever its weight is positive, so every sample strictly
+                // inside the support box must be one of its centres; the cap only drops samples of
+                // the fitting margin beyond it. Where even the support box holds more than the cap
+                // (dense crossing frames), it is narrowed towards the cell (which holds at most
+                // `leaf_points` samples) until it does not.
+                let mut required =
+                    tree.in_open_box(points, centre - support_half, centre + support_half);
+                let mut share = SUPPORT_SHARE;
+                for _ in 0..SUPPORT_NARROWING_STEPS {
+                    if required.len() <= max_patch {
+                        break;
+                    }
+                    share *= 0.5;
+                    support_half = cell_half + (half - cell_half) * share;
+                    required =
+                        tree.in_open_box(points, centre - support_half, centre + support_half);
+                }
+                if required.len() >= max_patch {
+                    members = required;
+                } else {
+                    let lo = centre - support_half;
+                    let hi = centre + support_half;
+                    let mut optional: Vec<(f64, u32)> = members
+                        .iter()
+                        .filter(|&&i| {
+                            let p = points[i as usize];
+                            !(p.cmpgt(lo).all() && p.cmplt(hi).all())
+                        })
+                        .map(|&i| ((points[i as usize] - centre).length_squared(), i))
+                        .collect();
+                    let keep = max_patch - required.len();
+                    if optional.len() > keep {
+                        optional.select_nth_unstable_by(keep, |a, b| {
+                            a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
+                        });
+                        optional.truncate(keep);
+                    }
+                    members = required;
+                    members.extend(optional.iter().map(|&(_, i)| i));
+                }
             }
-            let support_half = cell_half + (half - cell_half) * SUPPORT_SHARE;
-            solve_local(points, values, &members, centre, support_half, smoothing)
+            members.sort_unstable();
+            let fit = solve_local(points, values, &members, centre, support_half, smoothing);
+            let finished = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            if finished.is_multiple_of(64) {
+                progress.advance(finished);
+            }
+            fit
         })
         .collect();
+    progress.advance(leaves.len() as u64);
+    progress.finish();
     let mut model = PuModel {
         smoothing,
         eval_accuracy,
@@ -163,9 +215,16 @@ pub(crate) fn fit_pu(
     let mut stats = PuStats {
         min_trend_rank: 4,
         max_patch_points: 0,
+        max_residual: 0.0,
+        rms_residual: 0.0,
+        max_data_misfit: 0.0,
+        rms_data_misfit: 0.0,
+        foreign_weighted_samples: 0,
     };
+    let mut members: Vec<Vec<u32>> = Vec::with_capacity(leaves.len());
     for patch in patches {
-        let patch = patch?;
+        let mut patch = patch?;
+        members.push(std::mem::take(&mut patch.members));
         stats.min_trend_rank = stats.min_trend_rank.min(patch.rank);
         stats.max_patch_points = stats.max_patch_points.max(patch.rel.len());
         model.support_centre.push(patch.centre);
@@ -188,6 +247,22 @@ pub(crate) fn fit_pu(
             .all(|n| model.total_weight((n.lo + n.hi) * 0.5) > 0.0),
         "every cell centre must lie in a support"
     );
+    let (residuals, foreign) = model.system_residuals(values, &members);
+    stats.foreign_weighted_samples = foreign;
+    let (mut sum_sq, mut misfit_sq) = (0.0, 0.0);
+    for &(r, m) in &residuals {
+        stats.max_residual = stats.max_residual.max(r.abs());
+        stats.max_data_misfit = stats.max_data_misfit.max(m.abs());
+        sum_sq += r * r;
+        misfit_sq += m * m;
+    }
+    stats.rms_residual = (sum_sq / residuals.len() as f64).sqrt();
+    stats.rms_data_misfit = (misfit_sq / residuals.len() as f64).sqrt();
+    if !stats.max_residual.is_finite() {
+        return Err(Error::Numerical(
+            "partition-of-unity fit produced non-finite values".into(),
+        ));
+    }
     Ok((model, stats))
 }
 
@@ -199,6 +274,8 @@ fn bounds(points: &[DVec3]) -> (DVec3, DVec3) {
 }
 
 struct LocalFit {
+    /// Sample indices of the local centres, ascending.
+    members: Vec<u32>,
     centre: DVec3,
     half: DVec3,
     rel: Vec<DVec3>,
@@ -270,6 +347,7 @@ fn solve_local(
     // c0 + c.(x - o) with x relative to the patch centre: constant at the patch centre is c0 - c.o.
     let constant = c0 - linear.dot(basis.origin);
     Ok(LocalFit {
+        members: members.to_vec(),
         centre,
         half,
         rel,
@@ -293,12 +371,20 @@ pub(crate) fn projected_cholesky_solve(
     smoothing: f64,
 ) -> Option<(Vec<f64>, Vec<f64>)> {
     let n = rel.len();
+    let (xs, ys, zs): (Vec<f64>, Vec<f64>, Vec<f64>) = (
+        rel.iter().map(|p| p.x).collect(),
+        rel.iter().map(|p| p.y).collect(),
+        rel.iter().map(|p| p.z).collect(),
+    );
     let mut m = vec![0.0; n * n];
-    for i in 0..n {
-        for j in 0..n {
-            m[i * n + j] = (rel[i] - rel[j]).length();
+    for (i, row) in m.chunks_exact_mut(n).enumerate() {
+        // Written as slices so the compiler vectorises the square roots.
+        let (xi, yi, zi) = (xs[i], ys[i], zs[i]);
+        for (((a, x), y), z) in row.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            let (dx, dy, dz) = (x - xi, y - yi, z - zi);
+            *a = (dx * dx + dy * dy + dz * dz).sqrt();
         }
-        m[i * n + i] -= smoothing;
+        row[i] -= smoothing;
     }
     // Householder vectors (unit, zero above row k) reducing U to upper triangular form.
     let mut cols: Vec<Vec<f64>> = (0..r)
@@ -334,17 +420,19 @@ pub(crate) fn projected_cholesky_solve(
     // M <- H_k M H_k for symmetric M: p = 2 M v, q = p - (v.p) v, M <- M - v q^T - q v^T.
     let mut p = vec![0.0; n];
     for v in &reflectors {
-        for i in 0..n {
-            let row = &m[i * n..(i + 1) * n];
-            p[i] = 2.0 * row.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
+        // p = 2 M v as a sum of rows (M is symmetric): axpy loops vectorise, a dot product would not.
+        p.iter_mut().for_each(|a| *a = 0.0);
+        for (row, vi) in m.chunks_exact(n).zip(v) {
+            let scale = 2.0 * vi;
+            for (a, mij) in p.iter_mut().zip(row) {
+                *a += scale * mij;
+            }
         }
         let vp: f64 = v.iter().zip(&p).map(|(a, b)| a * b).sum();
         let q: Vec<f64> = p.iter().zip(v).map(|(pi, vi)| pi - vp * vi).collect();
-        for i in 0..n {
-            let row = &mut m[i * n..(i + 1) * n];
-            let (vi, qi) = (v[i], q[i]);
-            for j in 0..n {
-                row[j] -= vi * q[j] + qi * v[j];
+        for ((row, vi), qi) in m.chunks_exact_mut(n).zip(v).zip(&q) {
+            for ((a, qj), vj) in row.iter_mut().zip(&q).zip(v) {
+                *a -= vi * qj + qi * vj;
             }
         }
     }
@@ -352,61 +440,60 @@ pub(crate) fn projected_cholesky_solve(
     for v in &reflectors {
         reflect(&mut g, v);
     }
-    // Cholesky of the negated trailing block (row-major, lower triangle in place).
+    // Cholesky of the negated trailing block by faer (blocked, SIMD), sequential inside the rayon task so
+    // the result does not depend on the thread count.
     let k = n - r;
-    let mut c = vec![0.0; k * k];
-    for i in 0..k {
-        for j in 0..=i {
-            c[i * k + j] = -m[(r + i) * n + (r + j)];
-        }
-    }
-    for j in 0..k {
-        let (row_j, rest) = c[j * k..].split_at_mut(k);
-        let diag = row_j[j] - row_j[..j].iter().map(|a| a * a).sum::<f64>();
-        if diag.is_nan() || diag <= 0.0 {
+    let mut c = faer::Mat::<f64>::from_fn(k, k, |i, j| -m[(r + i) * n + (r + j)]);
+    {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::cholesky::llt;
+        let params = Default::default();
+        let mut buffer = MemBuffer::new(llt::factor::cholesky_in_place_scratch::<f64>(
+            k,
+            faer::Par::Seq,
+            params,
+        ));
+        let factored = llt::factor::cholesky_in_place(
+            c.as_mut(),
+            Default::default(),
+            faer::Par::Seq,
+            MemStack::new(&mut buffer),
+            params,
+        );
+        if factored.is_err() {
             return None;
         }
-        let diag = diag.sqrt();
-        row_j[j] = diag;
-        for i in j + 1..k {
-            let row_i = &mut rest[(i - j - 1) * k..(i - j) * k];
-            let s = row_i[j]
-                - row_i[..j]
-                    .iter()
-                    .zip(&row_j[..j])
-                    .map(|(a, b)| a * b)
-                    .sum::<f64>();
-            row_i[j] = s / diag;
-        }
     }
-    let mut y: Vec<f64> = g[r..].iter().map(|v| -v).collect();
-    for i in 0..k {
-        let mut s = y[i];
-        for t in 0..i {
-            s -= c[i * k + t] * y[t];
-        }
-        y[i] = s / c[i * k + i];
-    }
-    for i in (0..k).rev() {
-        let mut s = y[i];
-        for t in i + 1..k {
-            s -= c[t * k + i] * y[t];
-        }
-        y[i] = s / c[i * k + i];
-    }
+    let mut rhs = faer::Mat::<f64>::from_fn(k, 1, |i, _| -g[r + i]);
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+        c.as_ref(),
+        rhs.as_mut(),
+        faer::Par::Seq,
+    );
+    faer::linalg::triangular_solve::solve_upper_triangular_in_place(
+        c.as_ref().transpose(),
+        rhs.as_mut(),
+        faer::Par::Seq,
+    );
+    let y: Vec<f64> = (0..k).map(|i| rhs[(i, 0)]).collect();
     let mut l = vec![0.0; n];
     l[r..].copy_from_slice(&y);
     for v in reflectors.iter().rev() {
         reflect(&mut l, v);
     }
     // d = U^T (f - (A - wI) l), exact because U^T U = I on these points.
-    let mut residual = f.to_vec();
-    for i in 0..n {
-        let mut s = -smoothing * l[i];
-        for j in 0..n {
-            s += (rel[i] - rel[j]).length() * l[j];
+    let mut residual: Vec<f64> = f
+        .iter()
+        .zip(&l)
+        .map(|(fi, li)| fi + smoothing * li)
+        .collect();
+    for (j, lj) in l.iter().enumerate() {
+        // residual -= l_j A e_j (A symmetric), as an axpy the compiler vectorises.
+        let (xj, yj, zj) = (xs[j], ys[j], zs[j]);
+        for (((a, x), y), z) in residual.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            let (dx, dy, dz) = (x - xj, y - yj, z - zj);
+            *a -= lj * (dx * dx + dy * dy + dz * dz).sqrt();
         }
-        residual[i] -= s;
     }
     let d: Vec<f64> = (0..r)
         .map(|kk| (0..n).map(|i| u[i * r + kk] * residual[i]).sum())
@@ -603,6 +690,46 @@ impl PuModel {
 
     pub fn value(&self, x: DVec3) -> f64 {
         self.eval_with(x, &mut Vec::new())
+    }
+
+    /// The blended smoothing-system residual at every fitted sample, `f_i - s(x_i) + w lbar_i` with
+    /// `lbar_i` the weight-blended local coefficients of sample i (each exact local fit has
+    /// `f_i - s_j(x_i) = -w l_ji`, so the blend of exact fits has residual 0; at w = 0 it is the data
+    /// misfit). `members[j]` are patch j's sample indices (ascending). Also counts the samples where a
+    /// patch with positive weight was not fitted to the sample (their residual includes its misfit).
+    /// Each entry is (system residual, data misfit `f_i - s(x_i)`).
+    fn system_residuals(&self, values: &[f64], members: &[Vec<u32>]) -> (Vec<(f64, f64)>, usize) {
+        let foreign = std::sync::atomic::AtomicUsize::new(0);
+        let residuals = self
+            .points
+            .par_iter()
+            .enumerate()
+            .map_init(Vec::new, |terms, (i, &x)| {
+                self.raw_weights(x, terms);
+                let (mut sum_w, mut sum_ws, mut sum_wl) = (0.0, 0.0, 0.0);
+                let mut outside = false;
+                for t in terms.iter() {
+                    let j = t.patch as usize;
+                    let rel = x - self.support_centre[j];
+                    let (xs, ys, zs, q) = self.local(j);
+                    let s = self.constant[j] + self.linear[j].dot(rel) + sum_r(rel, xs, ys, zs, q);
+                    match members[j].binary_search(&(i as u32)) {
+                        Ok(k) => sum_wl += t.weight * q[k],
+                        Err(_) => outside = true,
+                    }
+                    sum_w += t.weight;
+                    sum_ws += t.weight * s;
+                }
+                if outside {
+                    foreign.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
+                (
+                    values[i] - (sum_ws - self.smoothing * sum_wl) / sum_w,
+                    values[i] - sum_ws / sum_w,
+                )
+            })
+            .collect();
+        (residuals, foreign.into_inner())
     }
 
     /// Batched evaluation; every point is independent, so the result does not depend on the threads.
@@ -892,6 +1019,16 @@ impl KdTree {
         node.left = left;
         node.right = right;
         id
+    }
+
+    /// Samples strictly inside the box (where a support's weight is positive), in tree order.
+    fn in_open_box(&self, points: &[DVec3], lo: DVec3, hi: DVec3) -> Vec<u32> {
+        let mut out = self.in_box(points, lo, hi);
+        out.retain(|&i| {
+            let p = points[i as usize];
+            p.cmpgt(lo).all() && p.cmplt(hi).all()
+        });
+        out
     }
 
     /// Samples inside the closed box, in tree order.

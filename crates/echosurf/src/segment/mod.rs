@@ -76,7 +76,7 @@
 //! is a table); rows run in parallel with rayon and all buffers are reused between frames.
 
 pub mod bone;
-mod filters;
+pub(crate) mod filters;
 mod init;
 mod preview;
 #[doc(hidden)]

@@ -29,6 +29,8 @@ use glam::DVec3;
 pub(crate) struct ClusteredSurface {
     pub positions: Vec<DVec3>,
     pub triangles: Vec<[u32; 3]>,
+    /// For each output vertex, the input vertex it continues (the survivor of its contractions).
+    pub input_index: Vec<u32>,
     /// Merges refused by the rule above.
     pub refused_merges: usize,
 }
@@ -307,6 +309,7 @@ pub(crate) fn cluster_vertices(
         if used[v] {
             new_index[v] = out.positions.len() as u32;
             out.positions.push(work.position(v as u32));
+            out.input_index.push(v as u32);
         }
     }
     out.triangles = work

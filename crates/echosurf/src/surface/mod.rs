@@ -134,9 +134,25 @@ pub struct LevelStats {
     /// Vertices duplicated because trust clipping left two surface pieces touching at them (and they
     /// could not be joined).
     pub split_pinched_vertices: usize,
-    /// Vertices whose Newton iteration did not reach `surface_tolerance_mm` (left at their best position).
+    /// Vertices Newton did not bring within `surface_tolerance_mm` (then put on the level by bisection).
+    pub newton_failed_vertices: usize,
+    /// Largest |s - level| at the best point Newton reached, over those vertices (before bisection).
+    pub newton_failed_max_error: f64,
+    /// Of those, vertices the gradient and axis lines found no bracket for (a fold or saddle of the
+    /// field), put on the level by bisecting the lattice edge their vertex was interpolated on.
+    pub edge_bisected_vertices: usize,
+    /// Vertices that neither Newton nor the bisection fallbacks brought within `surface_tolerance_mm`.
     pub unconverged_vertices: usize,
+    /// Output vertices with |s(v) - level| > [`LEVEL_TOLERANCE`] (measured on the final mesh; they
+    /// are flagged here, not hidden).
+    pub off_level_vertices: usize,
+    /// Largest |s(v) - level| over the output vertices (field units: grey levels for a fit).
+    pub max_level_error: f64,
 }
+
+/// Largest |s(v) - level| (field units; grey levels for an RBF fit) an output vertex may have before it
+/// is counted in [`LevelStats::off_level_vertices`].
+pub const LEVEL_TOLERANCE: f64 = 0.5;
 
 /// Work counts of one [`extract_surfaces_with_stats`] call, for cost reports.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
@@ -235,19 +251,40 @@ pub fn extract_surfaces_with_stats(
             triangles: merged.triangles.len(),
             refused_merges: merged.refused_merges,
             unconverged_vertices: 0,
+            newton_failed_vertices: 0,
+            newton_failed_max_error: 0.0,
+            edge_bisected_vertices: 0,
+            off_level_vertices: 0,
+            max_level_error: 0.0,
             joined_pinched_vertices: 0,
             split_pinched_vertices: 0,
             folded_triangles: 0,
         };
-        let (mut vertices, mut normals, unconverged) =
-            project_onto_surface(field, level, merged.positions, h, options, &mut counter);
-        level_stats.unconverged_vertices = unconverged;
+        let edges: Vec<(DVec3, DVec3)> = merged
+            .input_index
+            .iter()
+            .map(|&i| raw.edges[i as usize])
+            .collect();
+        let (mut vertices, mut normals, projection) = project_onto_surface(
+            field,
+            level,
+            merged.positions,
+            &edges,
+            h,
+            options,
+            &mut counter,
+        );
+        level_stats.unconverged_vertices = projection.unconverged;
+        level_stats.newton_failed_vertices = projection.newton_failed;
+        level_stats.newton_failed_max_error = projection.newton_failed_max_error;
+        level_stats.edge_bisected_vertices = projection.edge_bisected;
         level_stats.folded_triangles = untangle(
             field,
             level,
             &mut vertices,
             &mut normals,
             &merged.triangles,
+            &edges,
             h,
             options,
             &mut counter,
@@ -264,6 +301,17 @@ pub fn extract_surfaces_with_stats(
         level_stats.split_pinched_vertices = mesh.split_pinched_vertices();
         level_stats.vertices = mesh.vertices.len();
         level_stats.triangles = mesh.triangles.len();
+        // Independent check of the final vertices (after untangling and pinch repairs).
+        let (final_values, _) = lattice::evaluate_gradients(field, &mesh.vertices, &mut counter);
+        for v in &final_values {
+            let error = (v - level).abs();
+            if error.is_nan() || error > LEVEL_TOLERANCE {
+                level_stats.off_level_vertices += 1;
+            }
+            if error.is_finite() {
+                level_stats.max_level_error = level_stats.max_level_error.max(error);
+            }
+        }
         meshes.push(mesh);
         stats.levels.push(level_stats);
     }
@@ -307,20 +355,26 @@ fn validate(levels: &[f64], options: &SurfaceOptions) -> Result<()> {
 
 /// Newton steps along the gradient toward s(x) = level, all pending vertices in one batch per step.
 /// A step is capped at one lattice spacing (the vertex starts within about a cell of the surface, so a
-/// longer step means a poor gradient). Returns positions, unit normals toward lower values (the mesh's
-/// face normals where the gradient vanishes) and the count of vertices that did not converge.
+/// longer step means a poor gradient). On a rough field (an interpolating fit of speckle) Newton can
+/// wander or cycle; such a vertex restarts from the best point Newton visited and is put on the level by
+/// bisection along its gradient line ([`bisect_onto_level`]); where that finds no bracket (a fold or
+/// saddle of the field near the vertex), by bisection of the lattice edge its marching-tetrahedra vertex
+/// came from (`edges[i]`, whose end values straddle the level). Returns positions, unit normals toward
+/// lower values (the mesh's face normals where the gradient vanishes) and what happened.
 fn project_onto_surface(
     field: &dyn ScalarField,
     level: f64,
     mut positions: Vec<DVec3>,
+    edges: &[(DVec3, DVec3)],
     spacing_mm: f64,
     options: &SurfaceOptions,
     counter: &mut lattice::EvalCounter,
-) -> (Vec<DVec3>, Vec<DVec3>, usize) {
+) -> (Vec<DVec3>, Vec<DVec3>, Projection) {
     let mut normals = vec![DVec3::ZERO; positions.len()];
+    let mut best: Vec<(f64, DVec3)> = positions.iter().map(|&p| (f64::INFINITY, p)).collect();
     let mut pending: Vec<u32> = (0..positions.len() as u32).collect();
+    let mut failed: Vec<u32> = Vec::new();
     let mut steps = 0;
-    let mut unconverged = 0;
     while !pending.is_empty() {
         let points: Vec<DVec3> = pending.iter().map(|&i| positions[i as usize]).collect();
         let (values, gradients) = lattice::evaluate_gradients(field, &points, counter);
@@ -331,15 +385,18 @@ fn project_onto_surface(
             let g2 = g.length_squared();
             normals[i as usize] = -g;
             if !(s.is_finite() && g2.is_finite() && g2 > 0.0) {
-                unconverged += 1;
+                failed.push(i);
                 continue;
             }
             let residual = s - level;
+            if residual.abs() < best[i as usize].0 {
+                best[i as usize] = (residual.abs(), positions[i as usize]);
+            }
             if residual.abs() <= options.surface_tolerance_mm * g2.sqrt() {
                 continue;
             }
             if last {
-                unconverged += 1;
+                failed.push(i);
                 continue;
             }
             let step = -residual * g / g2;
@@ -357,7 +414,254 @@ fn project_onto_surface(
         }
         steps += 1;
     }
-    (positions, normals, unconverged)
+    let mut outcome = Projection {
+        newton_failed: failed.len(),
+        ..Projection::default()
+    };
+    if !failed.is_empty() {
+        failed.sort_unstable();
+        outcome.newton_failed_max_error = failed
+            .iter()
+            .map(|&i| best[i as usize].0)
+            .fold(0.0, f64::max);
+        let starts: Vec<DVec3> = failed
+            .iter()
+            .map(|&i| {
+                let (r, p) = best[i as usize];
+                if r.is_finite() {
+                    p
+                } else {
+                    positions[i as usize]
+                }
+            })
+            .collect();
+        let (moved, values, gradients) =
+            bisect_onto_level(field, level, &starts, spacing_mm, counter);
+        let mut missed = Vec::new();
+        for (k, &i) in failed.iter().enumerate() {
+            positions[i as usize] = moved[k];
+            normals[i as usize] = -gradients[k];
+            let g = gradients[k].length();
+            let miss = (values[k] - level).abs();
+            if miss.is_nan() || miss > options.surface_tolerance_mm * g {
+                missed.push((i, miss));
+            }
+        }
+        if !missed.is_empty() {
+            outcome.edge_bisected = missed.len();
+            let segments: Vec<(DVec3, DVec3)> =
+                missed.iter().map(|&(i, _)| edges[i as usize]).collect();
+            let on_edge = bisect_edges(field, level, &segments, counter);
+            for (&(i, miss), found) in missed.iter().zip(on_edge) {
+                match found {
+                    Some((p, v, g))
+                        if (v - level).abs() <= options.surface_tolerance_mm * g.length()
+                            || miss.is_nan()
+                            || (v - level).abs() < miss =>
+                    {
+                        positions[i as usize] = p;
+                        normals[i as usize] = -g;
+                        let now = (v - level).abs();
+                        if now.is_nan() || now > options.surface_tolerance_mm * g.length() {
+                            outcome.unconverged += 1;
+                        }
+                    }
+                    _ => outcome.unconverged += 1,
+                }
+            }
+        }
+    }
+    (positions, normals, outcome)
+}
+
+/// Bisection steps on a lattice edge (length at most sqrt(3) spacings): the bracket shrinks below 1e-14
+/// of it.
+const EDGE_BISECTION_STEPS: usize = 48;
+
+/// For each segment whose end values straddle `level`: the point of the bracket bisection ends on
+/// (the end of the last bracket nearer the level), with its value and gradient; None where the ends do
+/// not straddle it (the field changed since the lattice was evaluated: not expected).
+fn bisect_edges(
+    field: &dyn ScalarField,
+    level: f64,
+    segments: &[(DVec3, DVec3)],
+    counter: &mut lattice::EvalCounter,
+) -> Vec<Option<(DVec3, f64, DVec3)>> {
+    let ends: Vec<DVec3> = segments.iter().flat_map(|&(a, b)| [a, b]).collect();
+    let (ev, _) = lattice::evaluate_gradients(field, &ends, counter);
+    // Bracket (t_a, value_a, t_b, value_b) along a -> b, values minus the level.
+    let mut brackets: Vec<Option<(f64, f64, f64, f64)>> = (0..segments.len())
+        .map(|k| {
+            let (a, b) = (ev[2 * k] - level, ev[2 * k + 1] - level);
+            (a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0)).then_some((0.0, a, 1.0, b))
+        })
+        .collect();
+    let active: Vec<usize> = (0..segments.len())
+        .filter(|&k| brackets[k].is_some())
+        .collect();
+    let at = |k: usize, t: f64| segments[k].0 + (segments[k].1 - segments[k].0) * t;
+    for _ in 0..EDGE_BISECTION_STEPS {
+        if active.is_empty() {
+            break;
+        }
+        let mids: Vec<DVec3> = active
+            .iter()
+            .map(|&k| {
+                let (ta, _, tb, _) = brackets[k].expect("active");
+                at(k, 0.5 * (ta + tb))
+            })
+            .collect();
+        let (mv, _) = lattice::evaluate_gradients(field, &mids, counter);
+        for (m, &k) in active.iter().enumerate() {
+            let (ta, va, tb, vb) = brackets[k].expect("active");
+            let (t, v) = (0.5 * (ta + tb), mv[m] - level);
+            brackets[k] = Some(if !v.is_finite() || (v <= 0.0) == (va <= 0.0) {
+                (t, v, tb, vb)
+            } else {
+                (ta, va, t, v)
+            });
+        }
+    }
+    let finals: Vec<DVec3> = active
+        .iter()
+        .map(|&k| {
+            let (ta, va, tb, vb) = brackets[k].expect("active");
+            at(k, if va.abs() <= vb.abs() { ta } else { tb })
+        })
+        .collect();
+    let (values, gradients) = lattice::evaluate_gradients(field, &finals, counter);
+    let mut out = vec![None; segments.len()];
+    for (m, &k) in active.iter().enumerate() {
+        out[k] = Some((finals[m], values[m], gradients[m]));
+    }
+    out
+}
+
+/// What [`project_onto_surface`] did.
+#[derive(Debug, Default, Clone, Copy)]
+struct Projection {
+    newton_failed: usize,
+    /// Vertices the gradient/axis bisection left off the level, bisected on their lattice edge.
+    edge_bisected: usize,
+    newton_failed_max_error: f64,
+    unconverged: usize,
+}
+
+/// Offsets (in lattice spacings) along the gradient line where [`bisect_onto_level`] looks for a sign
+/// change of `s - level`, nearest first.
+const BRACKET_OFFSETS: [f64; 10] = [0.25, -0.25, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5, 2.0, -2.0];
+/// Bisection steps: the bracket (at most 2 spacings) shrinks below 1e-9 spacings.
+const BISECTION_STEPS: usize = 32;
+
+/// Search lines of [`bisect_onto_level`] besides the gradient's: the lattice axes.
+const AXIS_LINES: [DVec3; 3] = [DVec3::X, DVec3::Y, DVec3::Z];
+
+/// For each start point: the nearest sign change of `s - level` along the line through it in the
+/// direction of its gradient, else along a lattice axis (within two lattice spacings), then bisection of
+/// that bracket; where no bracket is found the start point is kept. Returns positions, values and
+/// gradients there.
+fn bisect_onto_level(
+    field: &dyn ScalarField,
+    level: f64,
+    starts: &[DVec3],
+    spacing_mm: f64,
+    counter: &mut lattice::EvalCounter,
+) -> (Vec<DVec3>, Vec<f64>, Vec<DVec3>) {
+    let (v0, g0) = lattice::evaluate_gradients(field, starts, counter);
+    let lines = 1 + AXIS_LINES.len();
+    let line = |k: usize, d: usize| -> DVec3 {
+        if d == 0 {
+            let n = g0[k].normalize_or_zero();
+            if n == DVec3::ZERO { DVec3::Z } else { n }
+        } else {
+            AXIS_LINES[d - 1]
+        }
+    };
+    let per_start = lines * BRACKET_OFFSETS.len();
+    let probes: Vec<DVec3> = (0..starts.len())
+        .flat_map(|k| {
+            (0..lines).flat_map(move |d| {
+                BRACKET_OFFSETS.map(|t| starts[k] + line(k, d) * (t * spacing_mm))
+            })
+        })
+        .collect();
+    let (pv, _) = lattice::evaluate_gradients(field, &probes, counter);
+    // Per start: its search line and bracket (t_a, value_a, t_b, value_b) in spacings, or None.
+    let mut directions: Vec<DVec3> = Vec::with_capacity(starts.len());
+    let mut brackets: Vec<Option<(f64, f64, f64, f64)>> = Vec::with_capacity(starts.len());
+    for k in 0..starts.len() {
+        let mut found = None;
+        // Nearest pair first (over all lines), the gradient line first at equal distance.
+        'search: for pair in [
+            (0.0, 0.25),
+            (0.0, -0.25),
+            (0.25, 0.5),
+            (-0.25, -0.5),
+            (0.5, 1.0),
+            (-0.5, -1.0),
+            (1.0, 1.5),
+            (-1.0, -1.5),
+            (1.5, 2.0),
+            (-1.5, -2.0),
+        ] {
+            for d in 0..lines {
+                let at = |t: f64| -> f64 {
+                    if t == 0.0 {
+                        v0[k] - level
+                    } else {
+                        let j = BRACKET_OFFSETS
+                            .iter()
+                            .position(|&o| o == t)
+                            .expect("offset");
+                        pv[k * per_start + d * BRACKET_OFFSETS.len() + j] - level
+                    }
+                };
+                let (a, b) = (at(pair.0), at(pair.1));
+                if a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0) {
+                    found = Some((d, (pair.0, a, pair.1, b)));
+                    break 'search;
+                }
+            }
+        }
+        directions.push(line(k, found.map_or(0, |(d, _)| d)));
+        brackets.push(found.map(|(_, b)| b));
+    }
+    let active: Vec<usize> = (0..starts.len())
+        .filter(|&k| brackets[k].is_some())
+        .collect();
+    for _ in 0..BISECTION_STEPS {
+        if active.is_empty() {
+            break;
+        }
+        let mids: Vec<DVec3> = active
+            .iter()
+            .map(|&k| {
+                let (ta, _, tb, _) = brackets[k].expect("active");
+                starts[k] + directions[k] * (0.5 * (ta + tb) * spacing_mm)
+            })
+            .collect();
+        let (mv, _) = lattice::evaluate_gradients(field, &mids, counter);
+        for (m, &k) in active.iter().enumerate() {
+            let (ta, va, tb, vb) = brackets[k].expect("active");
+            let (t, v) = (0.5 * (ta + tb), mv[m] - level);
+            brackets[k] = Some(if !v.is_finite() || (v <= 0.0) == (va <= 0.0) {
+                (t, v, tb, vb)
+            } else {
+                (ta, va, t, v)
+            });
+        }
+    }
+    let finals: Vec<DVec3> = (0..starts.len())
+        .map(|k| match brackets[k] {
+            Some((ta, va, tb, vb)) => {
+                let t = if va.abs() <= vb.abs() { ta } else { tb };
+                starts[k] + directions[k] * (t * spacing_mm)
+            }
+            None => starts[k],
+        })
+        .collect();
+    let (values, gradients) = lattice::evaluate_gradients(field, &finals, counter);
+    (finals, values, gradients)
 }
 
 /// Rounds of untangling after projection.
@@ -373,6 +677,7 @@ fn untangle(
     vertices: &mut [DVec3],
     normals: &mut [DVec3],
     triangles: &[[u32; 3]],
+    edges: &[(DVec3, DVec3)],
     spacing_mm: f64,
     options: &SurfaceOptions,
     counter: &mut lattice::EvalCounter,
@@ -409,9 +714,32 @@ fn untangle(
                 n.iter().map(|&w| vertices[w as usize]).sum::<DVec3>() / n.len().max(1) as f64
             })
             .collect();
-        let (positions, new_normals, _) =
-            project_onto_surface(field, level, starts, spacing_mm, options, counter);
+        let moved_edges: Vec<(DVec3, DVec3)> = moved.iter().map(|&v| edges[v as usize]).collect();
+        let (positions, new_normals, _) = project_onto_surface(
+            field,
+            level,
+            starts,
+            &moved_edges,
+            spacing_mm,
+            options,
+            counter,
+        );
+        // A move that would leave the vertex farther off the level than it is stays undone: a folded
+        // triangle is counted, an off-level vertex would break the surface's contract.
+        let (old_values, _) = lattice::evaluate_gradients(
+            field,
+            &moved
+                .iter()
+                .map(|&v| vertices[v as usize])
+                .collect::<Vec<_>>(),
+            counter,
+        );
+        let (new_values, _) = lattice::evaluate_gradients(field, &positions, counter);
         for (k, &v) in moved.iter().enumerate() {
+            let (was, now) = ((old_values[k] - level).abs(), (new_values[k] - level).abs());
+            if now.is_nan() || (now > LEVEL_TOLERANCE && now > was) {
+                continue;
+            }
             vertices[v as usize] = positions[k];
             normals[v as usize] = new_normals[k];
         }

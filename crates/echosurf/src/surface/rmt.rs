@@ -32,6 +32,9 @@ pub(crate) struct RawSurface {
     pub positions: Vec<DVec3>,
     /// The vertex's clustering cell ([`cluster_key`]).
     pub cluster_keys: Vec<u64>,
+    /// The lattice edge (node positions, mm) each vertex was interpolated on: the cached node values
+    /// straddle the level, so the field crosses it somewhere on that segment.
+    pub edges: Vec<(DVec3, DVec3)>,
     /// Triangles wound counter-clockwise seen from the lower-valued side.
     pub triangles: Vec<[u32; 3]>,
 }
@@ -103,6 +106,7 @@ pub(crate) fn march_tetrahedra(
                     let pa = lattice.node_position(corners[a]);
                     let pb = lattice.node_position(corners[b]);
                     raw.positions.push(pa + (pb - pa) * t);
+                    raw.edges.push((pa, pb));
                     let q = DVec3::new(
                         corners[a][0] as f64,
                         corners[a][1] as f64,
