@@ -631,9 +631,12 @@ pub fn encode_polydata(vertices: &[DVec3], triangles: &[[u32; 3]]) -> Option<Vec
     Some(out)
 }
 
+/// A POLYDATA message's points (f32 as sent) and polygons (point indices).
+pub type PolyData = (Vec<[f32; 3]>, Vec<Vec<u32>>);
+
 /// A POLYDATA message's points and polygons (vertices, lines and strips are skipped; attributes
 /// are not read). Every polygon index is checked against the point count.
-pub fn decode_polydata(content: &[u8]) -> Result<(Vec<[f32; 3]>, Vec<Vec<u32>>), CodecError> {
+pub fn decode_polydata(content: &[u8]) -> Result<PolyData, CodecError> {
     let t = "POLYDATA";
     if content.len() < POLYDATA_HEADER_SIZE {
         return Err(CodecError::content(t, "shorter than its 40-byte header"));

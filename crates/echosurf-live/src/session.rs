@@ -145,25 +145,25 @@ impl LiveSession {
                 }
                 self.take_image(decoded, image, &mut warnings);
             }
-            Message::Transform(matrix) => {
-                if self.options.transform_device.as_deref() == Some(device) {
-                    let invalid = metadata_says_invalid(decoded);
-                    if let Some(why) = &invalid {
-                        warnings.push(format!(
-                            "transform {device} at {:.3} s: {why}",
-                            decoded.header.timestamp_s()
-                        ));
-                    }
-                    self.poses.push_back(StampedPose {
-                        timestamp_s: decoded.header.timestamp_s(),
-                        matrix: *matrix,
-                        valid: invalid.is_none(),
-                    });
-                    while self.poses.len() > self.options.max_kept_transforms.max(2) {
-                        self.poses.pop_front();
-                    }
-                    self.place_pending(false, &mut warnings);
+            Message::Transform(matrix)
+                if self.options.transform_device.as_deref() == Some(device) =>
+            {
+                let invalid = metadata_says_invalid(decoded);
+                if let Some(why) = &invalid {
+                    warnings.push(format!(
+                        "transform {device} at {:.3} s: {why}",
+                        decoded.header.timestamp_s()
+                    ));
                 }
+                self.poses.push_back(StampedPose {
+                    timestamp_s: decoded.header.timestamp_s(),
+                    matrix: *matrix,
+                    valid: invalid.is_none(),
+                });
+                while self.poses.len() > self.options.max_kept_transforms.max(2) {
+                    self.poses.pop_front();
+                }
+                self.place_pending(false, &mut warnings);
             }
             Message::Status(status) if status.code != STATUS_OK => warnings.push(format!(
                 "status from {device}: code {} ({}) {}",
