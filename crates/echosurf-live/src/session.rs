@@ -307,13 +307,18 @@ impl LiveSession {
 }
 
 /// The options of the surface updates during the sweep: `extract`'s defaults on a smaller sample
-/// budget and the plain iso-surface, so an update keeps up with the frames (the final mesh uses
-/// `extract`'s defaults).
-pub fn update_extract_options(max_samples: usize) -> ExtractOptions {
+/// budget, a coarser surfacer lattice and the plain iso-surface, so an update keeps up with the frames
+/// (the final mesh uses `extract`'s defaults).
+pub fn update_extract_options(max_samples: usize, resolution_mm: f64) -> ExtractOptions {
+    let defaults = ExtractOptions::default();
     ExtractOptions {
         max_samples,
         sheet: pipeline::Sheet::Iso,
-        ..ExtractOptions::default()
+        surface: echosurf::surface::SurfaceOptions {
+            resolution_mm,
+            ..defaults.surface.clone()
+        },
+        ..defaults
     }
 }
 

@@ -38,6 +38,9 @@ pub struct Args {
     /// Sample budget of the updates during the sweep (the final mesh uses `extract`'s defaults).
     #[arg(long, default_value_t = 10_000)]
     pub update_samples: usize,
+    /// Surfacer lattice spacing (mm) of the updates during the sweep (the final mesh: 0.5 mm).
+    #[arg(long, default_value_t = 1.0)]
+    pub update_resolution: f64,
     /// Refuse messages with a body larger than this many MB.
     #[arg(long, default_value_t = 64)]
     pub max_message_mb: u64,
@@ -52,6 +55,9 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     if !(1..=3).contains(&args.send_version) {
         anyhow::bail!("--send-version must be 1, 2 or 3");
+    }
+    if !(args.update_resolution.is_finite() && args.update_resolution > 0.0) {
+        anyhow::bail!("--update-resolution must be a positive number of mm");
     }
     if args.frames == Some(0) {
         anyhow::bail!("--frames must be at least 1");
@@ -73,7 +79,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         calibration,
         out_dir: args.out.clone(),
         max_frames: args.frames,
-        update_extract: update_extract_options(args.update_samples),
+        update_extract: update_extract_options(args.update_samples, args.update_resolution),
         final_extract: ExtractOptions::default(),
         limits: Limits {
             max_body_bytes: args.max_message_mb.saturating_mul(1 << 20),
