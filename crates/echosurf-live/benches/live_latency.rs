@@ -14,7 +14,10 @@ use echosurf::pipeline::ExtractOptions;
 use echosurf::progress::NoProgress;
 use echosurf::simulate::{SimulationOptions, simulate};
 use echosurf_live::codec::{self, Image, Limits, encode_message};
-use echosurf_live::session::{LiveSession, SessionOptions, surface_of, update_extract_options};
+use echosurf_live::session::{
+    IncrementalBands, LiveSession, SessionOptions, surface_of, update_extract_options,
+    update_surface,
+};
 
 const UPDATE_EVERY: usize = 30;
 
@@ -48,6 +51,7 @@ fn main() {
         ..SessionOptions::default()
     });
     let update_options = update_extract_options(samples, resolution_mm);
+    let mut bands = IncrementalBands::default();
     let mut receive_s = 0.0f64;
     let mut worst_update_s = 0.0f64;
     println!(
@@ -75,7 +79,8 @@ fn main() {
         if session.update_due() {
             let snapshot = session.snapshot_for_update();
             let start = Instant::now();
-            let mesh = surface_of(&snapshot, calibration, &update_options).expect("update");
+            let mesh = update_surface(&mut bands, &snapshot, calibration, &update_options)
+                .expect("update");
             let s = start.elapsed().as_secs_f64();
             worst_update_s = worst_update_s.max(s);
             println!(

@@ -16,7 +16,7 @@ use echosurf::mesh::Mesh;
 use echosurf::pipeline::ExtractOptions;
 
 use crate::codec::{self, CodecError, Limits, encode_message, encode_polydata};
-use crate::session::{LiveSession, SessionOptions, surface_of};
+use crate::session::{IncrementalBands, LiveSession, SessionOptions, surface_of, update_surface};
 
 /// Device name of the surface sent back.
 pub const SURFACE_DEVICE: &str = "EchosurfSurface";
@@ -130,8 +130,9 @@ fn start_worker(calibration: Calibration, options: ExtractOptions) -> Worker {
     let (jobs, job_rx) = mpsc::sync_channel::<(TrackedSequence, Instant)>(1);
     let (result_tx, results) = mpsc::channel();
     std::thread::spawn(move || {
+        let mut bands = IncrementalBands::default();
         for (sequence, started) in job_rx {
-            let mesh = surface_of(&sequence, &calibration, &options);
+            let mesh = update_surface(&mut bands, &sequence, &calibration, &options);
             let seconds = started.elapsed().as_secs_f64();
             if result_tx
                 .send((sequence.frames.len(), mesh, seconds))

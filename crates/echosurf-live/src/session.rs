@@ -9,10 +9,13 @@ use std::collections::{BTreeMap, VecDeque};
 
 use glam::{DMat4, DQuat, DVec3};
 
-use echosurf::io::{Calibration, FrameTransform, PixelData, TrackedFrame, TrackedSequence};
+use echosurf::io::{
+    Calibration, FrameTransform, PixelData, TrackedFrame, TrackedSequence, resolve_poses,
+};
 use echosurf::mesh::Mesh;
 use echosurf::pipeline::{self, ExtractOptions};
 use echosurf::progress::NoProgress;
+use echosurf::segment::{BandMasks, segment_sequence};
 
 use crate::codec::{Decoded, Image, Message, SCALAR_UINT8, STATUS_OK};
 
@@ -330,6 +333,116 @@ pub fn surface_of(
     options: &ExtractOptions,
 ) -> echosurf::Result<Mesh> {
     let output = pipeline::extract(sequence, Some(calibration), options, &NoProgress)?;
+    Ok(output
+        .surfaces
+        .into_iter()
+        .next()
+        .map(|s| s.mesh)
+        .unwrap_or_default())
+}
+
+/// The bands of the frames segmented so far, so an update segments only the frames that arrived since
+/// the last one: each batch of new frames is segmented as a sequence of its own (its band starts
+/// afresh, as at a sweep start) and its masks are appended. Updates only; the final mesh segments the
+/// whole recording as `extract` does.
+#[derive(Debug, Default)]
+pub struct IncrementalBands {
+    bands: Option<BandMasks>,
+    /// Set when a batch came out a bone sweep (its bands are fitted differently): from then on every
+    /// update segments the whole recording.
+    whole_only: bool,
+}
+
+impl IncrementalBands {
+    /// Frames whose bands are kept.
+    pub fn frames(&self) -> usize {
+        self.bands.as_ref().map_or(0, |b| b.masks.len())
+    }
+
+    /// Segments the frames of `sequence` after those already done (`sequence` must extend the one of
+    /// the previous call); `None` when the whole recording must be segmented instead.
+    pub fn extend(
+        &mut self,
+        sequence: &TrackedSequence,
+        calibration: &Calibration,
+        options: &ExtractOptions,
+    ) -> Option<BandMasks> {
+        let done = self.frames();
+        if self.whole_only || done > sequence.frames.len() {
+            return None;
+        }
+        if done == sequence.frames.len() {
+            return self.bands.clone();
+        }
+        let PixelData::U8(pixels) = &sequence.pixels else {
+            return None;
+        };
+        let frame_len = sequence.frame_len();
+        let batch = TrackedSequence {
+            frames: sequence.frames[done..].to_vec(),
+            pixels: PixelData::U8(pixels[done * frame_len..].to_vec()),
+            header: sequence.header.clone(),
+            orientation: sequence.orientation.clone(),
+            width: sequence.width,
+            height: sequence.height,
+            channels: sequence.channels,
+        };
+        let path = std::path::Path::new("<live frames>");
+        let new =
+            resolve_poses(&batch, Some(calibration), options.reference, path).and_then(|poses| {
+                segment_sequence(
+                    &batch,
+                    &poses,
+                    calibration.clip,
+                    &options.init,
+                    &options.segment,
+                    &NoProgress,
+                )
+            });
+        let new = match new {
+            Ok(b) if b.bone_sweep => {
+                self.whole_only = true;
+                return None;
+            }
+            Ok(b) => b,
+            // No placeable frame in the batch (or nothing to segment): no band for these frames.
+            Err(e) => BandMasks {
+                masks: vec![vec![0; frame_len]; batch.frames.len()],
+                warnings: vec![format!("frames {done}-{}: {e}", sequence.frames.len() - 1)],
+                initialised_frames: Vec::new(),
+                frames: batch.frames.clone(),
+                bone_sweep: false,
+                bone_echoes: Vec::new(),
+                ..self.bands.clone()?
+            },
+        };
+        match &mut self.bands {
+            None => self.bands = Some(new),
+            Some(b) => {
+                b.masks.extend(new.masks);
+                b.frames.extend(new.frames);
+                b.initialised_frames
+                    .extend(new.initialised_frames.iter().map(|k| k + done));
+                b.warnings.extend(new.warnings);
+            }
+        }
+        self.bands.clone()
+    }
+}
+
+/// An update's surface: the new frames segmented into `bands`, then the fit and surface of all
+/// frames ([`surface_of`] when the bands cannot be reused).
+pub fn update_surface(
+    bands: &mut IncrementalBands,
+    sequence: &TrackedSequence,
+    calibration: &Calibration,
+    options: &ExtractOptions,
+) -> echosurf::Result<Mesh> {
+    let Some(masks) = bands.extend(sequence, calibration, options) else {
+        return surface_of(sequence, calibration, options);
+    };
+    let output =
+        pipeline::extract_with_masks(sequence, Some(calibration), options, masks, &NoProgress)?;
     Ok(output
         .surfaces
         .into_iter()
