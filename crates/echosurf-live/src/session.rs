@@ -639,4 +639,83 @@ mod tests {
         }
         assert_eq!(due, [false, true, false, true, false]);
     }
+
+    fn small_sphere() -> echosurf::simulate::Simulation {
+        let options = echosurf::simulate::SimulationOptions {
+            phantom: echosurf::simulate::PhantomKind::Sphere,
+            frames_per_sweep: 20,
+            sweeps: Some(1),
+            width_px: 96,
+            height_px: 80,
+            pixel_size_mm: 0.4,
+            ..echosurf::simulate::SimulationOptions::default()
+        };
+        echosurf::simulate::simulate(&options, &NoProgress).unwrap()
+    }
+
+    /// The refit from bands segmented elsewhere is `extract` itself when the bands are the whole
+    /// sequence's; growing bands keep each batch as segmenting that batch alone gives it.
+    #[test]
+    fn bands_grow_by_batches_and_refit_like_extract() {
+        let sim = small_sphere();
+        let (sequence, calibration) = (&sim.sequence, &sim.calibration_written);
+        let options = update_extract_options(4_000, 1.0);
+        let whole = surface_of(sequence, calibration, &options).unwrap();
+        let poses = resolve_poses(
+            sequence,
+            Some(calibration),
+            options.reference,
+            std::path::Path::new("s"),
+        )
+        .unwrap();
+        let masks = segment_sequence(
+            sequence,
+            &poses,
+            calibration.clip,
+            &options.init,
+            &options.segment,
+            &NoProgress,
+        )
+        .unwrap();
+        let from_masks = pipeline::extract_with_masks(
+            sequence,
+            Some(calibration),
+            &options,
+            masks.clone(),
+            &NoProgress,
+        )
+        .unwrap();
+        assert!(!whole.triangles.is_empty());
+        assert_eq!(from_masks.surfaces[0].mesh, whole);
+
+        let prefix = |n: usize| {
+            let mut s = sequence.clone();
+            s.frames.truncate(n);
+            let PixelData::U8(p) = &mut s.pixels else {
+                panic!()
+            };
+            p.truncate(n * sequence.frame_len());
+            s
+        };
+        let mut bands = IncrementalBands::default();
+        let first = bands.extend(&prefix(10), calibration, &options).unwrap();
+        let both = bands.extend(sequence, calibration, &options).unwrap();
+        assert_eq!(both.masks.len(), 20);
+        assert_eq!(both.masks[..10], first.masks[..]);
+        let second_alone = {
+            let mut rest = IncrementalBands::default();
+            let mut s = sequence.clone();
+            s.frames.drain(..10);
+            let PixelData::U8(p) = &mut s.pixels else {
+                panic!()
+            };
+            p.drain(..10 * sequence.frame_len());
+            rest.extend(&s, calibration, &options).unwrap()
+        };
+        assert_eq!(both.masks[10..], second_alone.masks[..]);
+        // Both start their band on frame 0 alike.
+        assert_eq!(first.masks[0], masks.masks[0]);
+        let mesh = update_surface(&mut bands, sequence, calibration, &options).unwrap();
+        assert!(!mesh.triangles.is_empty());
+    }
 }
