@@ -395,7 +395,8 @@ fn finish(
     echosurf::io::write_sequence(sequence_path, sequence, false)?;
     let mesh = match surface_of(sequence, &options.calibration, &options.final_extract) {
         Ok(mesh) => {
-            echosurf::io::write_mesh(mesh_path, &mesh)?;
+            // Tagged SPACE=RAS as `extract` writes by default (the Reference numbers unchanged).
+            echosurf::io::write_mesh_in(mesh_path, &mesh, echosurf::io::Space::Ras)?;
             mesh
         }
         Err(e) => {
