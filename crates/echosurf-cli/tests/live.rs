@@ -125,7 +125,11 @@ fn live_records_the_duck_streamed_by_pyigtl_and_sends_surfaces_back() {
         "--frames".as_ref(),
         n.as_ref(),
     ]);
-    std::fs::write(&done, b"").unwrap();
+    // The peer waits for the final surface (its triangle count) before it reports.
+    let final_triangles = echosurf::io::read_mesh(&out.join("live_surface.ply"))
+        .map(|m| m.triangles.len())
+        .unwrap_or(0);
+    std::fs::write(&done, final_triangles.to_string()).unwrap();
     let status = server.wait().unwrap();
     let stdout = String::from_utf8_lossy(&run.stdout);
     let stderr = String::from_utf8_lossy(&run.stderr);

@@ -299,6 +299,7 @@ fn run_inner(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
                     &mut warnings,
                 )?;
                 message_id = message_id.wrapping_add(1);
+                let _ = writer.set_write_timeout(Some(Duration::from_secs(10)));
                 if let Some(bytes) = polydata_message(&summary.0, options.send_version, message_id)
                 {
                     let _ = writer.write_all(&bytes);

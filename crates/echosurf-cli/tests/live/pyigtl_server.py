@@ -81,11 +81,16 @@ def main():
         next_at = start + (k + 1) * period
         time.sleep(max(0.0, next_at - time.time()))
     stream_s = time.time() - start
-    # The final surface comes after the last frame: wait until echosurf has exited.
+    # The final surface comes after the last frame: wait until echosurf has exited (DONE then holds
+    # the final mesh's triangle count), then until that surface has been received and parsed.
     deadline = time.time() + 600
     while not os.path.exists(done_path) and time.time() < deadline:
         time.sleep(0.05)
-    time.sleep(0.2)  # the receiving thread polls every 10 ms
+    time.sleep(0.1)
+    final_triangles = int(open(done_path).read() or 0)
+    deadline = time.time() + 60
+    while time.time() < deadline and not (received and received[-1]["polygons"] == final_triangles):
+        time.sleep(0.05)
     json.dump({"sent": sent, "stream_s": stream_s, "polydata": received}, open(result_path, "w"))
     server.stop()
 
