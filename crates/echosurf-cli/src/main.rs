@@ -58,6 +58,8 @@ enum Command {
     SlicerModule(Box<cmd::slicer::Args>),
     /// Extract every sweep a manifest lists: resumable, shardable (--shard I/N), one summary table.
     Batch(cmd::batch::Args),
+    /// Record tracked frames from an OpenIGTLink server, send the growing surface back as POLYDATA.
+    Live(cmd::live::Args),
 }
 
 /// The error and its causes on one line, each cause once. The library's file errors already end with
@@ -102,6 +104,11 @@ fn main() -> ExitCode {
     // temporary outputs, so an interrupted run leaves neither a partial file nor litter. Finished
     // outputs were renamed into place whole and stay.
     let _ = ctrlc::set_handler(|| {
+        // A live session stops on the first Ctrl-C and writes what it recorded.
+        if echosurf_live::client::request_stop() {
+            eprintln!("\nstopping: writing the recorded frames (Ctrl-C again to quit at once)");
+            return;
+        }
         let removed = echosurf::io::atomic::remove_in_flight_temp_files();
         eprintln!(
             "\ninterrupted: no output was left half-written ({removed} unfinished file(s) removed)"
@@ -128,6 +135,7 @@ fn main() -> ExitCode {
         Command::Demo(a) => cmd::demo::run(a),
         Command::SlicerModule(a) => cmd::slicer::run(*a),
         Command::Batch(a) => cmd::batch::run(a),
+        Command::Live(a) => cmd::live::run(a),
     };
     let result = result.and_then(|()| Ok(stdout::flush_out()?));
     if cli.memory_report {

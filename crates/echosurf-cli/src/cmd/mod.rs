@@ -8,6 +8,7 @@ pub mod extract;
 pub mod fit;
 pub mod inputs;
 pub mod inspect;
+pub mod live;
 pub mod outputs;
 pub mod reconstruct;
 pub mod render;

@@ -537,6 +537,19 @@ pub fn prepare_samples(
             progress,
         )
     })?;
+    prepare_samples_from_masks(sequence, calibration, options, meter, poses, masks)
+}
+
+/// [`prepare_samples`] after the segmentation: the kept pixels of `masks` (one per frame of
+/// `sequence`) as (decimated) samples. `live` segments frames as they arrive and calls this.
+pub fn prepare_samples_from_masks(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+    options: &ExtractOptions,
+    meter: &mut StageMeter,
+    poses: PoseResolution,
+    masks: BandMasks,
+) -> Result<PreparedSamples> {
     let pixel_size_mm = calibration
         .map(|c| c.pixel_size_mm())
         .unwrap_or([f64::NAN, f64::NAN]);
@@ -819,6 +832,42 @@ pub fn extract(
     }
     let mut meter = StageMeter::new();
     let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
+    extract_from_prepared(sequence, calibration, options, meter, prepared, progress)
+}
+
+/// [`extract`] on bands segmented elsewhere (`masks`: one per frame of `sequence`, as
+/// [`segment_sequence`] makes them): `live` segments each frame once, as it arrives, and refits
+/// from here. The RBF route only; no memory budget check.
+pub fn extract_with_masks(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+    options: &ExtractOptions,
+    masks: BandMasks,
+    progress: &dyn Progress,
+) -> Result<ExtractOutput> {
+    if masks.masks.len() != sequence.frames.len() {
+        return Err(Error::InvalidInput(format!(
+            "{} band masks for {} frames",
+            masks.masks.len(),
+            sequence.frames.len()
+        )));
+    }
+    let mut meter = StageMeter::new();
+    let poses = place_frames(sequence, calibration, options, &mut meter)?;
+    let prepared =
+        prepare_samples_from_masks(sequence, calibration, options, &mut meter, poses, masks)?;
+    extract_from_prepared(sequence, calibration, options, meter, prepared, progress)
+}
+
+/// The RBF route after the samples: fit, surface, sheets and pieces, and the report.
+fn extract_from_prepared(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+    options: &ExtractOptions,
+    mut meter: StageMeter,
+    prepared: PreparedSamples,
+    progress: &dyn Progress,
+) -> Result<ExtractOutput> {
     let mut warnings = prepared.masks.warnings.clone();
 
     let (levels, iso_auto) = match &options.iso {
