@@ -13,6 +13,26 @@ mod mc;
 mod ridge;
 mod rmt;
 mod sheet;
+
+/// One bisection step for every active bracket `(t_a, v_a, t_b, v_b)` (parameters and field values
+/// less the level at both ends): the midpoint's value `mid_values[m]` replaces the end of its sign.
+fn halve_brackets(
+    brackets: &mut [Option<(f64, f64, f64, f64)>],
+    active: &[usize],
+    mid_values: &[f64],
+    level: f64,
+) {
+    for (m, &k) in active.iter().enumerate() {
+        let (ta, va, tb, vb) = brackets[k].expect("active");
+        let (t, v) = (0.5 * (ta + tb), mid_values[m] - level);
+        brackets[k] = Some(if !v.is_finite() || (v <= 0.0) == (va <= 0.0) {
+            (t, v, tb, vb)
+        } else {
+            (ta, va, t, v)
+        });
+    }
+}
+
 #[cfg(test)]
 mod tests;
 
@@ -512,15 +532,7 @@ fn bisect_edges(
             })
             .collect();
         let (mv, _) = lattice::evaluate_gradients(field, &mids, counter);
-        for (m, &k) in active.iter().enumerate() {
-            let (ta, va, tb, vb) = brackets[k].expect("active");
-            let (t, v) = (0.5 * (ta + tb), mv[m] - level);
-            brackets[k] = Some(if !v.is_finite() || (v <= 0.0) == (va <= 0.0) {
-                (t, v, tb, vb)
-            } else {
-                (ta, va, t, v)
-            });
-        }
+        halve_brackets(&mut brackets, &active, &mv, level);
     }
     let finals: Vec<DVec3> = active
         .iter()
@@ -641,15 +653,7 @@ fn bisect_onto_level(
             })
             .collect();
         let (mv, _) = lattice::evaluate_gradients(field, &mids, counter);
-        for (m, &k) in active.iter().enumerate() {
-            let (ta, va, tb, vb) = brackets[k].expect("active");
-            let (t, v) = (0.5 * (ta + tb), mv[m] - level);
-            brackets[k] = Some(if !v.is_finite() || (v <= 0.0) == (va <= 0.0) {
-                (t, v, tb, vb)
-            } else {
-                (ta, va, t, v)
-            });
-        }
+        halve_brackets(&mut brackets, &active, &mv, level);
     }
     let finals: Vec<DVec3> = (0..starts.len())
         .map(|k| match brackets[k] {
