@@ -177,8 +177,10 @@ fn spine_is_segmented_as_bone_and_its_mesh_lies_on_the_bone() {
     // The bone sweep's default is the ridge sheet (through the echoes' crests, not on a level); its
     // iso-surface must lie on its level.
     assert_eq!(out.report.sheets[0].sheet, Sheet::EchoRidge);
-    let mut options = ExtractOptions::default();
-    options.sheet = Sheet::Iso;
+    let options = ExtractOptions {
+        sheet: Sheet::Iso,
+        ..ExtractOptions::default()
+    };
     let iso = extract_real_with("SpinePhantomFreehand.igs.mha", SPINE_CONFIG, &options);
     assert!(iso.report.counts.bone_sweep);
     assert_every_vertex_on_its_level(&iso);
