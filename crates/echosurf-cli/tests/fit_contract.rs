@@ -44,8 +44,11 @@ fn direct_solve_of_200k_points_is_refused_before_allocating() {
     ]);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{stderr}");
+    // The CLI's memory budget refuses first (about 640,000 MB), naming the solver and the budget.
     assert!(
-        stderr.contains("640.0 GB") && stderr.contains("--solver pu"),
+        stderr.contains("640040 MB")
+            && stderr.contains("--solver")
+            && stderr.contains("--memory-budget"),
         "{stderr}"
     );
     assert!(!model.exists());
