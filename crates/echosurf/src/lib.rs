@@ -7,6 +7,30 @@
 //! [`metrics`] scores meshes against truth and [`render`] draws previews. No stage calls a later one.
 //!
 //! Geometry is `f64` throughout (glam `DVec3` / `DMat4`), in millimetres unless a name says otherwise.
+//!
+//! A sphere of radius 5 mm, given as an analytic field, surfaced by the same regularised marching
+//! tetrahedra that surface a fit (examples/ holds longer ones: a whole sweep, a fit, a custom field):
+//!
+//! ```
+//! use echosurf::surface::{extract_surfaces, FnField, SurfaceDomain, SurfaceOptions};
+//! use glam::DVec3;
+//!
+//! // Value 5 - |p|, positive inside; its gradient points inward.
+//! let sphere = FnField(|p: DVec3| (5.0 - p.length(), -p.normalize_or_zero()));
+//! let domain = SurfaceDomain {
+//!     bounds_min_mm: DVec3::splat(-6.0),
+//!     bounds_max_mm: DVec3::splat(6.0),
+//!     ..SurfaceDomain::default()
+//! };
+//! let options = SurfaceOptions { resolution_mm: 1.0, ..SurfaceOptions::default() };
+//! let meshes = extract_surfaces(&sphere, &[0.0], &domain, &options)?;
+//! let mesh = &meshes[0];
+//! assert!(mesh.topology().is_closed_manifold());
+//! // Every vertex is moved onto the level, so it lies on the sphere to within the surfacer's tolerance.
+//! let worst_mm = mesh.vertices.iter().map(|v| (v.length() - 5.0).abs()).fold(0.0, f64::max);
+//! assert!(worst_mm < 1e-3, "a vertex lies {worst_mm} mm off the sphere");
+//! # Ok::<(), echosurf::Error>(())
+//! ```
 
 pub mod bench;
 pub mod budget;
