@@ -20,6 +20,15 @@ pub fn real_dir() -> PathBuf {
         .unwrap_or_else(|| beside.to_path_buf())
 }
 
+/// The path of one real recording; panics with the path when it is missing, so a test without the
+/// data says what to put where instead of failing on an unreadable file later.
 pub fn real(name: &str) -> PathBuf {
-    real_dir().join(name)
+    let path = real_dir().join(name);
+    assert!(
+        path.exists(),
+        "real PLUS data missing: {} (the real-data tests read `shared/data/real` beside the \
+         repository, i.e. ../shared/data/real from the checkout)",
+        path.display()
+    );
+    path
 }
