@@ -159,19 +159,8 @@ pub struct WeakEchoes {
 }
 
 impl Default for WeakEchoes {
-    /// Measured with `examples/completeness_by_angle` (pipeline defaults otherwise), off -> on:
-    /// duck seeds 1-3, the inner wall's probe side within 20 degrees of the beam 0.984 / 0.977 / 0.987
-    /// -> 0.989 / 0.985 / 0.992, pieces 15 / 17 / 16 -> 11 / 11 / 15, mean 0.207 / 0.212 / 0.190 ->
-    /// 0.198 / 0.215 / 0.196 mm; hand seeds 1-3, within 20-30 degrees 0.811 / 0.845 / 0.830 -> 0.907 /
-    /// 0.932 / 0.909, pieces 18 / 17 / 10 -> 7 / 4 / 4. Fraction 0.25 with reach 1 mm was as good on
-    /// accuracy and slightly less complete; 0.35 with 1 mm cost the duck's inner wall (0.975 on seed 1).
-    /// Drawing the sheet through the union of the strong and the weak ridge points instead raised p95 to
-    /// 0.60-0.63 mm on duck seeds 1-2; seeding from every strong ridge point rather than from the
-    /// sheet's surviving pieces grew sub-2 mm^2 speckle crumbs into kept pieces (fraction 0.35, reach
-    /// 1 mm, `echosurf bench routes`: sphere 2 -> 10 pieces, p95 0.44 -> 0.60 mm). Re-measured with the
-    /// echo-frame check and gap joins in place (docs/pipeline.md, "Where the defaults sit"): 0.4-0.6 with
-    /// reach 2-2.5 mm takes hand seed 2's probe side past 0.98 but hand seed 3's p95 past 0.6 mm and
-    /// costs a duck seed a patch or its p95.
+    /// The lower level 0.3 of the way to the background, reached within 1.5 mm of a strong ridge
+    /// (measured in docs/decisions/0004-echo-ridge-sheet.md, "The weaker echoes' defaults").
     fn default() -> Self {
         WeakEchoes {
             level_fraction: 0.3,
@@ -190,24 +179,14 @@ impl WeakEchoes {
     }
 }
 
-/// Smoothing weight `extract` uses unless told otherwise. With uniform thinning (measured on the
-/// simulated duck, 100k samples, 0.4 mm bins) w = 1 mm left speckle blobs (156 components) and 5 mm was
-/// best. With echo-priority thinning and small pieces removed, w = 2 against 5 mm (duck seeds 1-3, hand
-/// seed 1; `examples/completeness_by_angle.rs`): completeness of the walls facing the probe within 20
-/// degrees higher in all four (hand 0.993 vs 0.973, duck inner wall 0.981-0.994 vs 0.970-0.984), p95
-/// distance to the truth 0.94-0.98 vs 0.93-1.05 mm, mean 0.50-0.56 vs 0.47-0.58 mm, components 13-17
-/// vs 11-30. w = 8 mm: duck mean 0.68 mm.
+/// Smoothing weight `extract` uses unless told otherwise: smooth enough to remove speckle blobs, no
+/// smoother than the walls need (measured in docs/decisions/0009-smoothing.md).
 pub const DEFAULT_SMOOTHING_MM: f64 = 2.0;
 
-/// Pieces of an iso sheet smaller than this are removed unless told otherwise. Measured on the simulated
-/// duck: 5 mm^2 takes the mesh from 44 to 15 components and the proximal completeness within 20 degrees
-/// of the beam from 1.000 / 0.988 (outer / inner wall) to 1.000 / 0.984; 20 mm^2 leaves 10.
+/// Pieces of an iso sheet smaller than this are removed unless told otherwise: speckle blobs
+/// (measured in docs/decisions/0015-clean-up-defaults.md).
 pub const DEFAULT_MIN_COMPONENT_AREA_MM2: f64 = 5.0;
-/// The same for the echo-ridge sheet. Measured before gap bridging (`SheetOptions::bridge_mm`) on the
-/// simulated duck (seed 1; `examples/
-/// completeness_by_angle.rs`, SHEET=ridge): 0.5 / 1 / 2 / 5 mm^2 leave 57 / 33 / 20 / 10 components, and
-/// of the inner wall's probe side within 20 degrees of the beam 0.986 / 0.982 / 0.981 / 0.965 within
-/// 1 mm (the outer wall's stays 0.998-0.999); hand: 0.992 / 0.992 / 0.990 / 0.983.
+/// The same for the echo-ridge sheet (measured in docs/decisions/0015-clean-up-defaults.md).
 pub const DEFAULT_RIDGE_MIN_COMPONENT_AREA_MM2: f64 = 2.0;
 
 /// The surface `extract` outputs for each level.
@@ -348,10 +327,7 @@ impl FrameBeams {
 pub const DEFAULT_MIN_ECHO_FRAMES: usize = 3;
 
 /// Default [`ExtractOptions::max_echo_distance_mm`], in the frame's plane and beyond the echoes'
-/// reach across it. Over the simulated duck seeds 1-8 and hand seeds 1-3 it lowers p95 on every duck
-/// seed (seed 8: 0.591 -> 0.578 mm against the plain 2.5 mm distance) and changes no completeness
-/// figure; 1 mm takes duck seed 4 under 0.60 mm but drops 0.5-0.8 points of the walls facing away from
-/// the probe (seeds 4 and 8). docs/pipeline.md, "Flaps without echoes".
+/// reach across it (measured in docs/decisions/0015-clean-up-defaults.md).
 pub const DEFAULT_MAX_ECHO_DISTANCE_MM: f64 = 1.5;
 
 /// An echo backs a piece of surface within this distance of one of its vertices: about a speckle cell
@@ -362,14 +338,7 @@ pub const ECHO_SUPPORT_RADIUS_MM: f64 = 1.0;
 /// facing alike, are joined by default (see [`ExtractOptions::bridge_gap_mm`]): the echo-ridge sheet
 /// itself bridges gaps of this size between echo points that lie on one plane
 /// ([`SheetOptions::bridge_mm`]), so a gap this narrow between two pieces that continue one another
-/// is not evidence of two walls. Measured with `examples/completeness_by_angle` (duck seeds 1-8, hand
-/// seeds 1-3): duck pieces 10 / 9 / 8 / 12 / 10 / 10 / 11 / 13 -> 6 / 6 / 6 / 8 / 8 / 9 / 10 / 8,
-/// hand 1 / 3 / 4 -> 1 / 2 / 4; completeness within 20 degrees of the beam the same (duck seed 8's
-/// inner wall 0.987 -> 0.988); mean to the truth within 0.001 mm, p95 the same or lower (by up to
-/// 0.004 mm). With 1 mm: duck 9 / 7 / 8 / 9 / 9 / 9 / 11 / 11, hand 1 / 3 / 4. Wider bounds join more
-/// (3 mm: duck 6 / 6 / 6 / 6 / 6 / 6 / 7 / 6, hand 1 / 1 / 3), but of the seams whose wider end is 2-3 mm,
-/// 4 of 15 join the duck's outer wall to its inner or cut across its neck up to 2 mm off the truth
-/// (docs/pipeline.md, "Where the defaults sit").
+/// is not evidence of two walls (measured in docs/decisions/0015-clean-up-defaults.md).
 pub const DEFAULT_BRIDGE_GAP_MM: f64 = 2.0;
 
 /// Echo-priority margin `extract` uses unless told otherwise (see [`ExtractOptions::echo_margin_mm`]).

@@ -48,11 +48,8 @@
 //! a backward pass ([`SegmentOptions::backward_pass`], CLI `--backward-pass`, off by default): after each
 //! sweep the band is propagated back from its last frame as well and the union kept, so an echo that
 //! enters the view gets the full band on its first frame, not only the narrow band of an unconfirmed
-//! edgel. Measured on the simulated duck from a polygon init (chained edgels, 24-frame pass): visible
-//! surface within 45 degrees of the beam 99.5 % -> 100 %, pixels kept 22.7 % -> 24.8 % (one layer); the
-//! cavity floor's echoes behind the top wall 78.1 % -> 99.8 % (two layers). In `extract` (paper's edgels,
-//! duck seeds 1-8 and hand seeds 1-3) it is mixed: the duck's worst probe-side completeness rises, the
-//! hand's seeds 2 and 3 fall and p95 widens by up to 0.04 mm (docs/pipeline.md), so it is not the default.
+//! edgel. It is not the default: in `extract` it helps the duck and costs the hand (measured in
+//! docs/decisions/0002-segmentation-beyond-the-paper.md, "From the segment module's doc").
 //! [`SegmentOptions::wall_band`] (CLI `--wall-band`) bundles it with chained edgels in two layers
 //! and the paper's band width in mm: every echoing wall in at most 27 % of the pixels (simulated).
 //!
@@ -64,12 +61,9 @@
 //! floor, lets weak edgels (>= 0.3 x the floor) continue such a chain down a fading flank, and drops
 //! chains shorter than 3 mm (speckle grains are ~1 mm wide); then it does the same once more with each
 //! column's next candidate beyond the band around what it kept (a second layer: a wall seen through the
-//! first, such as a hollow organ's far wall); it is paired with 1 mm smoothing. Measured on the simulated
-//! sphere (12-frame sweep, 0.2 mm/px, auto init): kept pixels 50.8 % -> 26.5 %, visible surface (facing
-//! the beam within 60 degrees) kept 95.9 % -> 99.7 %, 100 % within 45 degrees; on the duck 100 % within
-//! 45 and 98.0 % within 60 degrees, and 85.6 % of its cavity floor's echoes behind the top wall (one
-//! layer: 60.3 %). Beyond ~40 degrees the simulated boundary returns no echo (cos^12 specular model),
-//! which is what the duck's last ~2 % lack. With `edgel_chaining: None` the paper's M largest are used.
+//! first, such as a hollow organ's far wall); it is paired with 1 mm smoothing (measured in
+//! docs/decisions/0002-segmentation-beyond-the-paper.md, "From the segment module's doc"). With
+//! `edgel_chaining: None` the paper's M largest are used.
 //!
 //! Speed: per frame one separable Gaussian, one gradient/NMS pass, two exact distance transforms (O(N),
 //! Felzenszwalb-Huttenlocher) and one lookup per pixel (squared distances are integers, so the Gaussian

@@ -37,20 +37,8 @@ pub struct SheetOptions {
 }
 
 impl Default for SheetOptions {
-    /// Measured through the echo-ridge points of the simulated duck (seed 1, pieces under 5 mm^2
-    /// removed): h 0.8 / reach 0.75 mm gave mean 0.20 mm and p95 0.54 mm to the truth in 10 pieces;
-    /// reach 1.0 mm, 0.28 / 0.85 mm in 11 (the wider reach bridges to echoes that are not the wall's,
-    /// and trimming the overhang at the rims does not recover it: p95 0.82); h 0.5 / reach 1.0 mm,
-    /// 0.31 / 0.88 mm. Holes up to 6 mm around (about 2 mm across) are closed: they lie within 1 mm of
-    /// their rim, so closing them changes no completeness figure, only the look.
-    ///
-    /// Bridging 2 mm (pipeline defaults, pieces under 2 mm^2 removed; `examples/completeness_by_angle`,
-    /// duck seeds 1-3 and hand seed 1): pieces 20 / 24 / 19 / 27 -> 15 / 17 / 16 / 18, the probe side
-    /// within 20 degrees of the beam as complete or more (duck seed 2's inner wall 0.971 -> 0.977), mean
-    /// and p95 to the truth 0.203 / 0.547 -> 0.207 / 0.569 mm on duck seed 1 and 0.171 / 0.459 -> 0.178 /
-    /// 0.486 mm on the hand. Without the plane test (RMS), bridges 2 mm wide crossed the duck's steep
-    /// parts: p95 0.80-0.86 mm; with an RMS bound of 0.4 mm almost nothing was bridged, 0.8 mm let p95 rise
-    /// to 0.63-0.69 mm. Plain discs (no balance test) ran the rims on along their tangent: p95 0.87-0.91.
+    /// Smoothing 0.8 mm, reach 0.75 mm, bridges up to 2 mm on one plane, holes up to 6 mm around closed:
+    /// the measurements are in docs/decisions/0004-echo-ridge-sheet.md ("The sheet's defaults").
     fn default() -> Self {
         SheetOptions {
             smoothing_mm: 0.8,
