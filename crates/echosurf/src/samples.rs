@@ -320,14 +320,7 @@ pub const ISO_FRACTION: f32 = 0.30;
 /// The suggested iso-level stays at least this far from the background to the strong echoes: below
 /// it, the fitted speckle comes through as blobs. Needed where fewer than a quarter of the columns
 /// cross an echo (a small object in a wide frame), so that the boundary level (upper quartile of the
-/// column peaks) is a speckle peak. Measured on the simulated phantoms at default noise (`echosurf bench
-/// routes --phantoms sphere,ellipsoid,torus --noise default`, ridge sheet, mean / p95 mm to the truth and
-/// components): without the floor sphere 0.80 / 2.66 / 37, ellipsoid 0.68 / 1.98 / 38, torus 0.16 /
-/// 0.45 / 14 (levels 28.9 / 31.0 / 32.2); floor 0.15: 0.23 / 0.85 / 11, 0.40 / 0.56 / 12, 0.14 / 0.38 /
-/// 11; 0.18: 0.14 / 0.40 / 3, 0.17 / 0.37 / 4, 0.13 / 0.35 / 8 (levels 36.3 / 37.2 / 38.0), with the
-/// completeness within 30 degrees of the beam unchanged on the sphere and ellipsoid and 91.7 -> 84.6 % on
-/// the torus. The duck, hand, spine and N-wire levels are above it (floor 36.4 < 37.5, 38.9 < 48.7,
-/// 180.3 < 191.0, 38.4 < 50.7) and unchanged.
+/// column peaks) is a speckle peak (measured in docs/decisions/0008-automatic-iso-level.md).
 pub const ISO_FLOOR_FRACTION: f32 = 0.18;
 
 /// Background and boundary echo levels read from the images the way echoes form: in every column of

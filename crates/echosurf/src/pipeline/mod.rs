@@ -220,13 +220,8 @@ impl Sheet {
 }
 
 /// `Sheet::Auto` draws the ridge sheet when at least this share of the proximal sheet reached a ridge.
-/// Measured (`RidgeStats`, release build, defaults): simulated duck and hand at low / default / high noise
-/// (`echosurf bench routes`) 0.889 / 0.908 / 0.925 and 0.963 / 0.962 / 0.943, where the ridge sheet is
-/// the more accurate in every case (mean 0.16-0.29 mm against 0.42-0.63 mm); sphere, ellipsoid and
-/// torus at the three noise levels 0.890-0.955 (ridge mean 0.13-0.30 mm); the real N-wire sweep
-/// 0.891 (wire echoes); the real spine sweep (NN_MEAN config) 0.597: tissue as bright as the iso-level
-/// over the bone, where the field still rises 1.5 mm past the sheath and the ridge sheet is lacy
-/// (20 pieces against the iso-surface's 5).
+/// It separates the thin-echo recordings from the real spine's ragged sheath (measured in
+/// docs/decisions/0007-choosing-the-sheet-per-level.md).
 pub const AUTO_RIDGE_MIN_REACHED_SHARE: f64 = 0.8;
 
 /// The sheet drawn for one iso-level, and why.

@@ -53,10 +53,8 @@ pub struct VoxelRouteOptions {
 }
 
 impl Default for VoxelRouteOptions {
-    /// Sigma 1 mm, measured on the default simulated duck and hand (auto level, whole truth): on the
-    /// hand 1 mm gives the best mean accuracy of 0.5 / 1 / 1.5 / 2 mm (2.16 mm against 3.75 / 2.46 /
-    /// 2.91); on the duck 1.5 mm is slightly more accurate (0.99 against 1.15 mm) but finds a third less
-    /// of the surface; below 1 mm the speckle makes thousands of fragments. See the README.
+    /// Sigma 1 mm: the most accurate on the simulated hand, and less smoothing leaves speckle fragments
+    /// (measured in docs/decisions/0013-direct-rbf-vs-voxel-route.md, "The voxel route's smoothing").
     fn default() -> Self {
         VoxelRouteOptions {
             spacing_mm: None,

@@ -32,15 +32,8 @@ pub struct RidgeOptions {
 }
 
 impl Default for RidgeOptions {
-    /// 1.5 mm reaches the ridge from a sheet at 30 % of a 0.3-1 mm wide echo without reaching the next
-    /// echo of a 2 mm wall; 0.1 mm steps with a parabolic fit place the maximum to a few hundredths of
-    /// a mm on smooth fields. Facing 0.5 (60 degrees) drops the sheath's rim, where a search along the
-    /// beam runs nearly parallel to the echo (simulated duck, all pieces kept: facing 0 / 0.2 / 0.5 gave
-    /// mean 0.235 / 0.216 / 0.184 mm and p95 0.64 / 0.56 / 0.45 mm to the truth, at completeness within
-    /// 20 degrees of the beam within 0.02 of each other). With the pipeline's sheet drawn through the
-    /// moved vertices (duck seeds 1 and 2): a 2.5 mm reach took the inner wall's probe side within 20
-    /// degrees from 0.981 / 0.971 to 0.950 / 0.941; facing 0.3 raised p95 to 0.66 / 0.61 mm; facing 0.7
-    /// cost up to 0.023 of completeness.
+    /// A 1.5 mm search reaches the ridge of a thin echo without reaching the next wall's; facing 0.5
+    /// (60 degrees) drops the sheath's rim (measured in docs/decisions/0004-echo-ridge-sheet.md).
     fn default() -> Self {
         RidgeOptions {
             max_shift_mm: 1.5,
