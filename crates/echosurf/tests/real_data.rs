@@ -523,3 +523,10 @@ fn mangled_files_never_panic() {
         }
     }
 }
+
+/// A missing recording fails its test with the path it looked for, not with a later read error.
+#[test]
+#[should_panic(expected = "real PLUS data missing: ")]
+fn a_missing_recording_is_named() {
+    real("no-such-recording.igs.mha");
+}
