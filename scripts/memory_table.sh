@@ -47,15 +47,15 @@ declare -A NAME=([spine]="Spine sweep (NN_MEAN)" [nwire]="N-wire sweep" [duck]="
 echo "| command | input | estimate | peak resident | peak / estimate |"
 echo "|---|---|---:|---:|---:|"
 for k in spine nwire duck demo; do
-    row "extract" "${NAME[$k]}" extract "${SEQ[$k]}" --config "${CFG[$k]}" --out "$k.ply" \
+    row "extract" "${NAME[$k]}" extract "${SEQ[$k]}" --calibration "${CFG[$k]}" --out "$k.ply" \
         --model "$k.esrbf" --samples "${k}_samples.ply" --report "$k.json"
 done
 for k in spine nwire duck demo; do
-    row "extract --method voxel" "${NAME[$k]}" extract "${SEQ[$k]}" --config "${CFG[$k]}" \
+    row "extract --method voxel" "${NAME[$k]}" extract "${SEQ[$k]}" --calibration "${CFG[$k]}" \
         --method voxel --out "${k}_voxel.ply"
 done
 for k in spine nwire duck demo; do
-    row "reconstruct" "${NAME[$k]}" reconstruct "${SEQ[$k]}" --config "${CFG[$k]}" --out "$k.mha"
+    row "reconstruct" "${NAME[$k]}" reconstruct "${SEQ[$k]}" --calibration "${CFG[$k]}" --out "$k.mha"
 done
 for k in spine nwire duck demo; do
     row "fit" "${NAME[$k]} samples" fit "${k}_samples.ply" --out "${k}_refit.esrbf"
