@@ -124,7 +124,7 @@ for shape in $shapes; do
     for route in $routes; do
         mesh=$out/${shape}_$route.ply
         log=$out/${shape}_$route.log
-        args=("$dir/$shape.mha" --config "$dir/${shape}_config.xml" --iso "$(iso_of "$shape")" --out "$mesh")
+        args=("$dir/$shape.mha" --calibration "$dir/${shape}_config.xml" --iso "$(iso_of "$shape")" --out "$mesh")
         if [ "$route" = voxel ]; then
             args+=(--method voxel)
         else
@@ -141,7 +141,7 @@ for shape in $shapes; do
         end=$(date +%s.%N)
         seconds=$(awk -v a="$start" -v b="$end" 'BEGIN { printf "%.1f", b - a }')
         json=$out/${shape}_$route.json
-        "$echosurf" compare "$mesh" "$truth" --sequence "$dir/$shape.mha" --config "$dir/${shape}_config.xml" \
+        "$echosurf" compare "$mesh" "$truth" --sequence "$dir/$shape.mha" --calibration "$dir/${shape}_config.xml" \
             --facing either --facing-deg 60 --json >"$json"
         mean=$(json_get "$json" mean_mm)
         p95=$(json_get "$json" p95_mm)

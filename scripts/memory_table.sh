@@ -47,15 +47,17 @@ declare -A NAME=([spine]="Spine sweep (NN_MEAN)" [nwire]="N-wire sweep" [duck]="
 echo "| command | input | estimate | peak resident | peak / estimate |"
 echo "|---|---|---:|---:|---:|"
 for k in spine nwire duck demo; do
-    row "extract" "${NAME[$k]}" extract "${SEQ[$k]}" --config "${CFG[$k]}" --out "$k.ply" \
-        --model "$k.esrbf" --samples "${k}_samples.ply" --report "$k.json"
+    # The model and the samples have no flag: they are outputs of the option file.
+    printf '[outputs]\nmodel = "%s"\nsamples = "%s"\n' "$k.esrbf" "${k}_samples.ply" > "${k}_outputs.toml"
+    row "extract" "${NAME[$k]}" extract "${SEQ[$k]}" --calibration "${CFG[$k]}" --out "$k.ply" \
+        --config "${k}_outputs.toml" --report "$k.json"
 done
 for k in spine nwire duck demo; do
-    row "extract --method voxel" "${NAME[$k]}" extract "${SEQ[$k]}" --config "${CFG[$k]}" \
+    row "extract --method voxel" "${NAME[$k]}" extract "${SEQ[$k]}" --calibration "${CFG[$k]}" \
         --method voxel --out "${k}_voxel.ply"
 done
 for k in spine nwire duck demo; do
-    row "reconstruct" "${NAME[$k]}" reconstruct "${SEQ[$k]}" --config "${CFG[$k]}" --out "$k.mha"
+    row "reconstruct" "${NAME[$k]}" reconstruct "${SEQ[$k]}" --calibration "${CFG[$k]}" --out "$k.mha"
 done
 for k in spine nwire duck demo; do
     row "fit" "${NAME[$k]} samples" fit "${k}_samples.ply" --out "${k}_refit.esrbf"

@@ -78,7 +78,7 @@ for entry in "${grid[@]}"; do
         continue
     fi
     start=$(date +%s.%N)
-    if ! "$echosurf" extract "$dir/sim.mha" --config "$dir/sim_config.xml" --out "$mesh" "${extra[@]}" \
+    if ! "$echosurf" extract "$dir/sim.mha" --calibration "$dir/sim_config.xml" --out "$mesh" "${extra[@]}" \
         >"$out/$name.extract.log" 2>&1; then
         echo "physics_grid.sh: extract failed for $name, see $out/$name.extract.log" >&2
         rows+=("| $name | $knobs | extract failed | | | | | | |")
@@ -90,7 +90,7 @@ for entry in "${grid[@]}"; do
     facing=either
     [ "$phantom" = bone ] && facing=probe
     json=$out/$name.json
-    "$echosurf" compare "$mesh" "$dir/truth.ply" --sequence "$dir/sim.mha" --config "$dir/sim_config.xml" \
+    "$echosurf" compare "$mesh" "$dir/truth.ply" --sequence "$dir/sim.mha" --calibration "$dir/sim_config.xml" \
         --facing "$facing" --facing-deg 60 --json >"$json"
     mean=$(json_get "$json" mean_mm)
     p95=$(json_get "$json" p95_mm)

@@ -40,9 +40,9 @@ fn a_batch_with_a_broken_sweep_finishes_the_others_and_resumes() {
     std::fs::write(
         &manifest,
         "options = [\"--max-samples\", \"3000\", \"--resolution\", \"1.0\"]\n\
-         [[sweep]]\nname = \"first\"\nsequence = \"a/sim.mha\"\nconfig = \"a/sim_config.xml\"\n\
-         [[sweep]]\nname = \"broken\"\nsequence = \"c/sim.mha\"\nconfig = \"c/sim_config.xml\"\n\
-         [[sweep]]\nname = \"second\"\nsequence = \"b/sim.mha\"\nconfig = \"b/sim_config.xml\"\n\
+         [[sweep]]\nname = \"first\"\nsequence = \"a/sim.mha\"\ncalibration = \"a/sim_config.xml\"\n\
+         [[sweep]]\nname = \"broken\"\nsequence = \"c/sim.mha\"\ncalibration = \"c/sim_config.xml\"\n\
+         [[sweep]]\nname = \"second\"\nsequence = \"b/sim.mha\"\ncalibration = \"b/sim_config.xml\"\n\
          options = [\"--sheet\", \"iso\", \"--space\", \"lps\"]\n",
     )
     .unwrap();

@@ -43,7 +43,7 @@ fn extract_voxel_route_finds_the_sphere() {
     echosurf(&[
         "extract",
         seq.to_str().unwrap(),
-        "--config",
+        "--calibration",
         config.to_str().unwrap(),
         "--method",
         "voxel",
@@ -81,7 +81,7 @@ fn extract_voxel_route_finds_the_sphere() {
     echosurf(&[
         "extract",
         seq.to_str().unwrap(),
-        "--config",
+        "--calibration",
         config.to_str().unwrap(),
         "--method",
         "voxel",
@@ -92,7 +92,7 @@ fn extract_voxel_route_finds_the_sphere() {
 
     // A bad method is an error, not a panic.
     let bad = Command::new(env!("CARGO_BIN_EXE_echosurf"))
-        .args(["extract", seq.to_str().unwrap(), "--config"])
+        .args(["extract", seq.to_str().unwrap(), "--calibration"])
         .arg(&config)
         .args(["--method", "splat", "--out"])
         .arg(dir.path().join("x.ply"))

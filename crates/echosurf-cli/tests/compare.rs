@@ -94,7 +94,7 @@ fn compare_reports_distances_completeness_and_topology() {
     assert!(err.contains("broken.ply"), "{err}");
 }
 
-/// The swept-truth score's inputs are checked: a missing sequence is named, `--config` needs
+/// The swept-truth score's inputs are checked: a missing sequence is named, `--calibration` needs
 /// `--sequence`, and the facing angle must lie in (0, 90] degrees.
 #[test]
 fn compare_sequence_options_fail_cleanly() {
@@ -117,7 +117,7 @@ fn compare_sequence_options_fail_cleanly() {
     assert!(err.contains("missing.mha"), "{err}");
     // The options of the swept-truth score mean nothing without the sequence: not silently ignored.
     for extra in [
-        ["--config", "x.xml"],
+        ["--calibration", "x.xml"],
         ["--facing", "probe"],
         ["--facing-deg", "20"],
         ["--world", "tracker"],
@@ -131,7 +131,7 @@ fn compare_sequence_options_fail_cleanly() {
         let mut args = vec![
             "--sequence",
             spine.to_str().unwrap(),
-            "--config",
+            "--calibration",
             config.to_str().unwrap(),
         ];
         args.extend_from_slice(extra);

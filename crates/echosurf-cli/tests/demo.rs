@@ -116,7 +116,7 @@ fn demo_writes_everything_and_its_ridge_sheet_is_accurate() {
             .arg(out.join("truth.ply"))
             .arg("--sequence")
             .arg(out.join("duck.mha"))
-            .arg("--config")
+            .arg("--calibration")
             .arg(out.join("duck_config.xml"))
             .args(["--facing", side, "--facing-deg", "20", "--json"])
             .output()

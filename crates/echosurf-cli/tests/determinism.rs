@@ -45,24 +45,40 @@ fn outputs_with(threads: &str, root: &Path) -> Vec<(String, Vec<u8>)> {
     let extract = [
         "extract",
         "sim/sim.mha",
-        "--config",
+        "--calibration",
         "sim/sim_config.xml",
         "--max-samples",
         "1500",
         "--seed",
         "3",
     ];
+    // The model and samples are outputs of the option file (paths relative to the working folder).
+    std::fs::write(
+        dir.join("iso.toml"),
+        "[outputs]\nmodel = \"model.esrbf\"\nsamples = \"samples.ply\"\n",
+    )
+    .unwrap();
+    std::fs::write(
+        dir.join("ridge.toml"),
+        "[tuning.segment]\nbackward_pass = true\n",
+    )
+    .unwrap();
     let iso = [
         "--resolution",
         "2",
         "--out",
         "mesh.ply",
-        "--model",
-        "model.esrbf",
-        "--samples",
-        "samples.ply",
+        "--config",
+        "iso.toml",
     ];
-    let ridge = ["--sheet", "ridge", "--backward-pass", "--out", "ridge.ply"];
+    let ridge = [
+        "--sheet",
+        "ridge",
+        "--config",
+        "ridge.toml",
+        "--out",
+        "ridge.ply",
+    ];
     run(&[&extract[..], &iso].concat(), &dir, threads);
     run(&[&extract[..], &ridge].concat(), &dir, threads);
     [

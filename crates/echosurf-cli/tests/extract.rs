@@ -7,12 +7,12 @@ use std::process::Output;
 mod common;
 use common::echosurf;
 
-/// `echosurf extract SEQ --config CONFIG --out OUT` followed by `extra`.
+/// `echosurf extract SEQ --calibration CONFIG --out OUT` followed by `extra`.
 fn extract(seq: &Path, config: &Path, out: &Path, extra: &[&str]) -> Output {
     let mut args = vec![
         "extract",
         seq.to_str().unwrap(),
-        "--config",
+        "--calibration",
         config.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
@@ -83,6 +83,11 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
     let report = dir.path().join("report.json");
     let preview = dir.path().join("preview.png");
     let model = dir.path().join("fit.esrbf");
+    let outputs = common::extract_config(
+        dir.path(),
+        "outputs.toml",
+        &format!("[outputs]\nmodel = {:?}\n", model.to_str().unwrap()),
+    );
     let out = extract(
         &seq,
         &config,
@@ -94,8 +99,8 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
             report.to_str().unwrap(),
             "--preview",
             preview.to_str().unwrap(),
-            "--model",
-            model.to_str().unwrap(),
+            &outputs[0],
+            &outputs[1],
         ],
     );
     assert!(
@@ -148,7 +153,7 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
             "--json",
             "--sequence",
             seq.to_str().unwrap(),
-            "--config",
+            "--calibration",
             config.to_str().unwrap(),
             "--facing",
             side,
@@ -194,7 +199,7 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
         truth.to_str().unwrap(),
         "--sequence",
         seq.to_str().unwrap(),
-        "--config",
+        "--calibration",
         config.to_str().unwrap(),
     ]);
     assert!(out.status.success());
@@ -274,16 +279,24 @@ fn extract_refuses_bad_requests_without_writing() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("not a number"));
 
-    // A negative gap to bridge is refused by name.
+    // A negative gap to bridge is refused by name (its file and key).
+    let gap = common::extract_config(
+        dir.path(),
+        "gap.toml",
+        "[tuning.cleanup]\nbridge_gap_mm = -1.0\n",
+    );
     let out = extract(
         &seq,
         &config,
         &mesh,
-        &[&small[..], &["--bridge-gap=-1"]].concat(),
+        &[&small[..], &[&gap[0], &gap[1]]].concat(),
     );
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("--bridge-gap"), "{err}");
+    assert!(
+        err.contains("gap.toml: tuning.cleanup.bridge_gap_mm must be 0 or a positive"),
+        "{err}"
+    );
     assert!(!mesh.exists());
 
     // A device set without an Image->Probe transform names the file.
@@ -340,29 +353,46 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
         medians[0], medians[1]
     );
     assert!(medians[1] < 0.8 * medians[0], "{medians:?}");
-    for (args, message) in [
-        (&["--sheet", "middle"][..], "--sheet middle"),
+    let bad = extract(
+        &seq,
+        &config,
+        &dir.path().join("bad.ply"),
+        &["--sheet", "middle"],
+    );
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--sheet middle"));
+    for (toml, message) in [
+        ("reach_mm = 0.0", "tuning.ridge.reach_mm must be a positive"),
         (
-            &["--sheet", "ridge", "--ridge-reach", "0"][..],
-            "--ridge-reach must be a positive",
+            "bridge_mm = nan",
+            "tuning.ridge.bridge_mm must be 0 or a positive",
         ),
         (
-            &["--ridge-bridge", "nan"][..],
-            "--ridge-bridge must be 0 or a positive",
+            "weak_level_fraction = 1.0",
+            "tuning.ridge.weak_level_fraction must be a fraction",
         ),
         (
-            &["--ridge-weak", "1"][..],
-            "--ridge-weak must be a fraction",
-        ),
-        (
-            &["--ridge-weak-reach", "0"][..],
-            "--ridge-weak-reach must be a positive",
+            "weak_reach_mm = 0.0",
+            "tuning.ridge.weak_reach_mm must be a positive",
         ),
     ] {
-        let bad = extract(&seq, &config, &dir.path().join("bad.ply"), args);
-        assert!(!bad.status.success(), "{args:?}");
+        let file = common::extract_config(
+            dir.path(),
+            "ridge.toml",
+            &format!("[tuning.ridge]\n{toml}\n"),
+        );
+        let bad = extract(
+            &seq,
+            &config,
+            &dir.path().join("bad.ply"),
+            &[&file[0], &file[1]],
+        );
+        assert!(!bad.status.success(), "{toml}");
         let err = String::from_utf8_lossy(&bad.stderr);
-        assert!(err.contains(message), "{args:?}: {err}");
+        assert!(
+            err.contains("ridge.toml: ") && err.contains(message),
+            "{toml}: {err}"
+        );
     }
     assert!(!dir.path().join("bad.ply").exists());
 }
@@ -404,7 +434,7 @@ fn pieces_one_frame_echoes_are_removed_with_a_warning_saying_how_to_keep_them() 
     // The default asks for 3 frames; a 2-frame recording is asked for 2.
     assert!(
         stderr.contains(
-            "was echoed by fewer than 2 frames and removed (--min-echo-frames 0 keeps them)"
+            "was echoed by fewer than 2 frames and removed (tuning.cleanup.min_echo_frames = 0 keeps them)"
         ),
         "{stderr}"
     );
@@ -418,13 +448,18 @@ fn pieces_one_frame_echoes_are_removed_with_a_warning_saying_how_to_keep_them() 
     assert!(echosurf::io::read_mesh(&mesh).unwrap().is_empty());
     // Turned off, the same pieces are there.
     let kept = dir.path().join("kept.ply");
-    let out = extract(&seq, &config, &kept, &["--min-echo-frames", "0"]);
+    let keep = common::extract_config(
+        dir.path(),
+        "keep.toml",
+        "[tuning.cleanup]\nmin_echo_frames = 0\n",
+    );
+    let out = extract(&seq, &config, &kept, &[&keep[0], &keep[1]]);
     assert!(out.status.success());
     let mesh = echosurf::io::read_mesh(&kept).unwrap();
     assert_eq!(mesh.topology().components as u64, removed);
 }
 
-/// `--trim-rim 1` peels the rims of the ridge sheet: fewer triangles, the same pieces, and the far tail
+/// `tuning.cleanup.trim_rim_rings = 1` peels the rims of the ridge sheet: fewer triangles, the same pieces, and the far tail
 /// of the distances to the truth shorter (the rims are where a sheet is least accurate).
 #[test]
 fn trimming_the_rim_keeps_the_pieces_and_shortens_the_tail() {
@@ -434,7 +469,12 @@ fn trimming_the_rim_keeps_the_pieces_and_shortens_the_tail() {
     let mut scores = Vec::new();
     for (name, extra) in [("kept", "0"), ("trimmed", "1")] {
         let mesh = dir.path().join(format!("{name}.ply"));
-        let said = extract_ridge(&seq, &config, &mesh, &["--trim-rim", extra]);
+        let trim = common::extract_config(
+            dir.path(),
+            "trim.toml",
+            &format!("[tuning.cleanup]\ntrim_rim_rings = {extra}\n"),
+        );
+        let said = extract_ridge(&seq, &config, &mesh, &[&trim[0], &trim[1]]);
         assert_eq!(
             said.contains("rim triangles trimmed (1 ring)"),
             extra == "1",
@@ -459,7 +499,7 @@ fn trimming_the_rim_keeps_the_pieces_and_shortens_the_tail() {
     assert!(get(trimmed, "accuracy", "p95_mm") < get(kept, "accuracy", "p95_mm"));
 }
 
-/// `--max-echo-distance` removes the ridge sheet's triangles far from every kept echo before the piece
+/// `tuning.cleanup.max_echo_distance_mm` removes the ridge sheet's triangles far from every kept echo before the piece
 /// checks: on the small sphere none lie beyond the default 1.5 mm, 298 beyond 0.5 mm (measured); the
 /// mesh stays an oriented manifold, and 0 turns the check off. A negative distance is refused.
 #[test]
@@ -471,16 +511,16 @@ fn triangles_far_from_every_echo_are_removed_and_reported() {
     for distance in ["0", "1.5", "0.5"] {
         let mesh = dir.path().join(format!("mesh_{distance}.ply"));
         let report = dir.path().join(format!("report_{distance}.json"));
+        let far = common::extract_config(
+            dir.path(),
+            "far.toml",
+            &format!("[tuning.cleanup]\nmax_echo_distance_mm = {distance}\n"),
+        );
         let said = extract_ridge(
             &seq,
             &config,
             &mesh,
-            &[
-                "--max-echo-distance",
-                distance,
-                "--report",
-                report.to_str().unwrap(),
-            ],
+            &[&far[0], &far[1], "--report", report.to_str().unwrap()],
         );
         compare_manifold(&mesh, &truth);
         let report: serde_json::Value =
@@ -504,15 +544,21 @@ fn triangles_far_from_every_echo_are_removed_and_reported() {
     assert_eq!(off, 0);
     assert_eq!(default, all);
     assert!(near > 0 && fewer < all, "{removed:?}");
+    let negative = common::extract_config(
+        dir.path(),
+        "far.toml",
+        "[tuning.cleanup]\nmax_echo_distance_mm = -1.0\n",
+    );
     let refused = extract(
         &seq,
         &config,
         &dir.path().join("refused.ply"),
-        &["--max-echo-distance=-1"],
+        &[&negative[0], &negative[1]],
     );
     assert!(!refused.status.success());
     assert!(
-        String::from_utf8_lossy(&refused.stderr).contains("--max-echo-distance"),
+        String::from_utf8_lossy(&refused.stderr)
+            .contains("far.toml: tuning.cleanup.max_echo_distance_mm"),
         "{}",
         String::from_utf8_lossy(&refused.stderr)
     );

@@ -31,7 +31,7 @@ fn hand_seed_1_meets_the_pipeline_targets_in_one_piece() {
     echosurf(&[
         "extract",
         seq.to_str().unwrap(),
-        "--config",
+        "--calibration",
         config.to_str().unwrap(),
         "--out",
         mesh.to_str().unwrap(),
@@ -57,7 +57,7 @@ fn hand_seed_1_meets_the_pipeline_targets_in_one_piece() {
         &[
             "--sequence",
             seq.to_str().unwrap(),
-            "--config",
+            "--calibration",
             config.to_str().unwrap(),
             "--facing",
             "probe",

@@ -29,7 +29,7 @@ fn args_for(case: &Case, c: &Companions, out: &Path) -> Option<Vec<PathBuf>> {
         Target::SequenceForExtract => vec![
             s("extract"),
             p,
-            s("--config"),
+            s("--calibration"),
             c.config.clone(),
             s("--out"),
             out.join("mesh.ply"),
@@ -37,7 +37,7 @@ fn args_for(case: &Case, c: &Companions, out: &Path) -> Option<Vec<PathBuf>> {
         Target::Config => vec![
             s("reconstruct"),
             c.sequence.clone(),
-            s("--config"),
+            s("--calibration"),
             p,
             s("--out"),
             out.join("volume.mha"),
@@ -45,7 +45,7 @@ fn args_for(case: &Case, c: &Companions, out: &Path) -> Option<Vec<PathBuf>> {
         Target::InitialBand => vec![
             s("extract"),
             c.sequence.clone(),
-            s("--config"),
+            s("--calibration"),
             c.config.clone(),
             s("--init"),
             p,
@@ -203,7 +203,7 @@ fn memory_budget_refuses_up_front_with_what_would_fit() {
         let out = Command::new(BIN)
             .arg("extract")
             .arg(sim.join("sim.mha"))
-            .arg("--config")
+            .arg("--calibration")
             .arg(sim.join("sim_config.xml"))
             .arg("--out")
             .arg(dir.path().join("mesh.ply"))
@@ -222,11 +222,13 @@ fn memory_budget_refuses_up_front_with_what_would_fit() {
     assert!(seconds < MAX_SECONDS, "refusal took {seconds} s");
     // Every kept sample in one dense system needs gigabytes: refused after segmentation with a
     // sample count that fits.
+    let direct = dir.path().join("direct.toml");
+    std::fs::write(&direct, "[tuning.fit]\nsolver = \"direct\"\n").unwrap();
     let (out, _) = extract(&[
         "--max-samples",
         "100000",
-        "--solver",
-        "direct",
+        "--config",
+        direct.to_str().unwrap(),
         "--memory-budget",
         "300",
     ]);
@@ -258,12 +260,12 @@ fn outputs_never_replace_inputs_or_each_other() {
     let p = PathBuf::from;
     let in_dir = |name: &str| dir.path().join(name);
     std::fs::create_dir(in_dir("sub")).unwrap();
-    // `echosurf COMMAND SEQUENCE --config CONFIG REST...` must fail, saying `says`, quickly.
+    // `echosurf COMMAND SEQUENCE --calibration CONFIG REST...` must fail, saying `says`, quickly.
     let refused = |command: &str, sequence: &Path, rest: &[PathBuf], says: &str| {
         let mut args = vec![
             PathBuf::from(command),
             sequence.to_path_buf(),
-            p("--config"),
+            p("--calibration"),
             config.clone(),
         ];
         args.extend_from_slice(rest);

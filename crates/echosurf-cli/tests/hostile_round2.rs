@@ -208,6 +208,17 @@ fn refuse_all(cases: &[Case], scratch: &Path) -> usize {
     cases.len()
 }
 
+/// Writes an `extract --config` file at `file` holding `toml` then `[outputs] model = model` (the
+/// model has no flag) and returns the file.
+fn model_config(file: PathBuf, toml: &str, model: &Path) -> PathBuf {
+    std::fs::write(
+        &file,
+        format!("{toml}\n[outputs]\nmodel = {:?}\n", model.to_str().unwrap()),
+    )
+    .unwrap();
+    file
+}
+
 fn os(parts: &[&dyn AsRefOs]) -> Vec<OsString> {
     parts.iter().map(|p| p.os()).collect()
 }
@@ -353,7 +364,7 @@ fn outputs_that_are_special_files_links_to_inputs_or_unwritable_are_refused() {
     let out = f.path("out");
     std::fs::create_dir(&out).unwrap();
     let extract = |rest: &[&dyn AsRefOs]| {
-        let mut a = os(&[&"extract", seq, &"--config", config]);
+        let mut a = os(&[&"extract", seq, &"--calibration", config]);
         a.extend(os(rest));
         a
     };
@@ -380,9 +391,10 @@ fn outputs_that_are_special_files_links_to_inputs_or_unwritable_are_refused() {
         ));
         let model = out.join("model-pipe.esrbf");
         assert!(fifo(&model));
+        let with_model = model_config(out.join("model-pipe.toml"), "", &model);
         cases.push(case(
-            "extract --model FIFO",
-            &extract(&[&"--out", &mesh, &"--model", &model]),
+            "extract outputs.model FIFO",
+            &extract(&[&"--out", &mesh, &"--config", &with_model]),
             &[seq],
             &model,
             &["named pipe"],
@@ -392,7 +404,7 @@ fn outputs_that_are_special_files_links_to_inputs_or_unwritable_are_refused() {
         let args = os(&[
             &"segment",
             seq,
-            &"--config",
+            &"--calibration",
             config,
             &"--auto-init",
             &"--out",
@@ -407,7 +419,14 @@ fn outputs_that_are_special_files_links_to_inputs_or_unwritable_are_refused() {
         ));
         let volume = out.join("volume-pipe.mha");
         assert!(fifo(&volume));
-        let args = os(&[&"reconstruct", seq, &"--config", config, &"--out", &volume]);
+        let args = os(&[
+            &"reconstruct",
+            seq,
+            &"--calibration",
+            config,
+            &"--out",
+            &volume,
+        ]);
         cases.push(case(
             "reconstruct --out FIFO",
             &args,
@@ -482,7 +501,7 @@ fn outputs_that_are_special_files_links_to_inputs_or_unwritable_are_refused() {
         let args = os(&[
             &"reconstruct",
             seq,
-            &"--config",
+            &"--calibration",
             config,
             &"--out",
             &proc_volume,
@@ -519,7 +538,7 @@ fn outputs_that_are_special_files_links_to_inputs_or_unwritable_are_refused() {
     let args = os(&[
         &"segment",
         seq,
-        &"--config",
+        &"--calibration",
         config,
         &"--auto-init",
         &"--out",
@@ -536,7 +555,14 @@ fn outputs_that_are_special_files_links_to_inputs_or_unwritable_are_refused() {
     {
         let link = out.join("link.mha");
         std::os::unix::fs::symlink(seq, &link).unwrap();
-        let args = os(&[&"reconstruct", seq, &"--config", config, &"--out", &link]);
+        let args = os(&[
+            &"reconstruct",
+            seq,
+            &"--calibration",
+            config,
+            &"--out",
+            &link,
+        ]);
         cases.push(case(
             "reconstruct --out symlink to input",
             &args,
@@ -677,14 +703,14 @@ fn devices_are_written_directly_links_followed_and_simulations_kept_apart() {
         common::echosurf_ok(&os(&[
             &"extract",
             &f.sequence,
-            &"--config",
+            &"--calibration",
             &f.config,
             &"--out",
             &mesh,
             &"--report",
             &PathBuf::from("/dev/null"),
-            &"--model",
-            &link,
+            &"--config",
+            &model_config(out.join("link.toml"), "", &link),
         ]));
         assert!(kind(null).is_char_device(), "/dev/null was replaced");
         assert!(kind(&link).is_symlink(), "the link was replaced");
@@ -697,7 +723,7 @@ fn devices_are_written_directly_links_followed_and_simulations_kept_apart() {
         let run = common::echosurf_ok(&os(&[
             &"extract",
             &f.sequence,
-            &"--config",
+            &"--calibration",
             &f.config,
             &"--out",
             &mesh,
@@ -767,7 +793,7 @@ fn deep_xml_and_failing_standard_output_end_cleanly() {
             &os(&[
                 &"reconstruct",
                 seq,
-                &"--config",
+                &"--calibration",
                 &deep_config,
                 &"--out",
                 &out.join("v.mha"),
@@ -781,7 +807,7 @@ fn deep_xml_and_failing_standard_output_end_cleanly() {
             &os(&[
                 &"extract",
                 seq,
-                &"--config",
+                &"--calibration",
                 &deeper_config,
                 &"--out",
                 &out.join("m.ply"),
@@ -792,7 +818,7 @@ fn deep_xml_and_failing_standard_output_end_cleanly() {
         ),
         case(
             "inspect: config 20000 deep",
-            &os(&[&"inspect", seq, &"--config", &deep_config]),
+            &os(&[&"inspect", seq, &"--calibration", &deep_config]),
             &[seq, &deep_config],
             &deep_config,
             &["nest"],
@@ -812,7 +838,7 @@ fn deep_xml_and_failing_standard_output_end_cleanly() {
         &os(&[
             &"segment",
             seq,
-            &"--config",
+            &"--calibration",
             &disguised,
             &"--auto-init",
             &"--out",
@@ -831,7 +857,7 @@ fn deep_xml_and_failing_standard_output_end_cleanly() {
     );
     cases.push(case(
         "inspect: config with 200k nodes",
-        &os(&[&"inspect", seq, &"--config", &many]),
+        &os(&[&"inspect", seq, &"--calibration", &many]),
         &[seq, &many],
         &many,
         &["limit"],
@@ -843,7 +869,7 @@ fn deep_xml_and_failing_standard_output_end_cleanly() {
     );
     cases.push(case(
         "inspect: config with a DTD",
-        &os(&[&"inspect", seq, &"--config", &laughs]),
+        &os(&[&"inspect", seq, &"--calibration", &laughs]),
         &[seq, &laughs],
         &laughs,
         &["dtd", "well-formed"],
@@ -854,7 +880,7 @@ fn deep_xml_and_failing_standard_output_end_cleanly() {
         &os(&[
             &"reconstruct",
             seq,
-            &"--config",
+            &"--calibration",
             &garbage,
             &"--out",
             &out.join("v.mha"),
@@ -925,7 +951,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
             &os(&[
                 &"reconstruct",
                 seq,
-                &"--config",
+                &"--calibration",
                 &bad,
                 &"--out",
                 &out.join("v.mha"),
@@ -941,7 +967,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
         &os(&[
             &"extract",
             seq,
-            &"--config",
+            &"--calibration",
             &bad,
             &"--out",
             &out.join("m.ply"),
@@ -969,7 +995,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
         let frame_words: &'static str = Box::leak(format!("frame {frame}:").into_boxed_str());
         cases.push(case(
             &format!("inspect: frame {frame} ProbeToTracker not affine"),
-            &os(&[&"inspect", &bad, &"--config", config]),
+            &os(&[&"inspect", &bad, &"--calibration", config]),
             &[&bad],
             &bad,
             &[frame_words],
@@ -985,7 +1011,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
         &os(&[
             &"extract",
             &bad,
-            &"--config",
+            &"--calibration",
             config,
             &"--out",
             &out.join("m.ply"),
@@ -1007,7 +1033,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
         &os(&[
             &"reconstruct",
             seq,
-            &"--config",
+            &"--calibration",
             &twice,
             &"--out",
             &out.join("v.mha"),
@@ -1018,7 +1044,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
     ));
     cases.push(case(
         "inspect: two Image->Probe",
-        &os(&[&"inspect", seq, &"--config", &twice]),
+        &os(&[&"inspect", seq, &"--calibration", &twice]),
         &[seq, &twice],
         &twice,
         &["lines 4 and 5"],
@@ -1033,7 +1059,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
             &os(&[
                 &"extract",
                 seq,
-                &"--config",
+                &"--calibration",
                 &bad,
                 &"--out",
                 &out.join("m.ply"),
@@ -1078,7 +1104,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
                 &os(&[
                     &"reconstruct",
                     &path,
-                    &"--config",
+                    &"--calibration",
                     config,
                     &"--out",
                     &out.join("v.mha"),
@@ -1151,7 +1177,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
             "Seq_Frame0005_Timestamp = 0.01",
         )
     });
-    let run = common::echosurf_ok(&os(&[&"inspect", &backwards, &"--config", config]));
+    let run = common::echosurf_ok(&os(&[&"inspect", &backwards, &"--calibration", config]));
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(
         stderr.contains(&format!(
@@ -1170,7 +1196,7 @@ fn nonsense_geometry_pixels_and_models_are_refused_or_warned() {
         common::echosurf_ok(&os(&[
             &"segment",
             seq,
-            &"--config",
+            &"--calibration",
             config,
             &"--init",
             &init,
@@ -1201,7 +1227,7 @@ fn unbounded_memory_and_time_are_refused_up_front() {
             &os(&[
                 &"extract",
                 seq,
-                &"--config",
+                &"--calibration",
                 config,
                 &"--init",
                 &png,
@@ -1316,7 +1342,7 @@ fn unbounded_memory_and_time_are_refused_up_front() {
             &os(&[
                 &"reconstruct",
                 seq,
-                &"--config",
+                &"--calibration",
                 &bad,
                 &"--out",
                 &out.join("v.mha"),
@@ -1336,7 +1362,7 @@ fn unbounded_memory_and_time_are_refused_up_front() {
         let mut args = os(&[
             &command,
             seq,
-            &"--config",
+            &"--calibration",
             &bad,
             &"--out",
             &out.join(output),
@@ -1384,7 +1410,7 @@ fn unbounded_memory_and_time_are_refused_up_front() {
             &os(&[
                 &"extract",
                 seq,
-                &"--config",
+                &"--calibration",
                 config,
                 &"--method",
                 &method,
@@ -1405,7 +1431,7 @@ fn unbounded_memory_and_time_are_refused_up_front() {
         &os(&[
             &"reconstruct",
             seq,
-            &"--config",
+            &"--calibration",
             config,
             &"--spacing",
             &"0.05",
@@ -1496,18 +1522,20 @@ fn sigterm_and_sighup_leave_no_temporary_files() {
             .args(os(&[
                 &"extract",
                 &sim.join("sim.mha"),
-                &"--config",
+                &"--calibration",
                 &sim.join("sim_config.xml"),
                 &"--out",
                 &out.join("mesh.ply"),
-                &"--model",
-                &out.join("model.esrbf"),
+                &"--config",
+                &model_config(
+                    dir.path().join(format!("{signal}.toml")),
+                    "[tuning.sampling]\nbin_mm = 0.0",
+                    &out.join("model.esrbf"),
+                ),
                 &"--max-samples",
                 &"400000",
                 &"--resolution",
                 &"0.15",
-                &"--sample-bin",
-                &"0",
             ]))
             .stdout(Stdio::null())
             .stderr(Stdio::piped())

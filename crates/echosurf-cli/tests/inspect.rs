@@ -34,7 +34,7 @@ fn path_arg(name: &str) -> String {
 fn json_has_the_documented_keys_and_the_spine_box() {
     let out = inspect_ok(&[
         &path_arg("SpinePhantomFreehand.igs.mha"),
-        "--config",
+        "--calibration",
         &path_arg(NN_MEAN),
         "--json",
     ]);
@@ -117,7 +117,7 @@ fn a_clip_rectangle_beyond_the_frames_is_pointed_out() {
     let nwire_config =
         path_arg("PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml");
     let clip_line = |sequence: &str| {
-        let out = inspect_ok(&[&path_arg(sequence), "--config", &nwire_config]);
+        let out = inspect_ok(&[&path_arg(sequence), "--calibration", &nwire_config]);
         let text = String::from_utf8_lossy(&out.stdout).into_owned();
         text.lines()
             .find(|l| l.trim_start().starts_with("clip "))
@@ -158,7 +158,7 @@ fn bad_inputs_exit_non_zero_naming_the_file() {
     }
     let seq = dir.path().join("all_invalid.igs.mha");
     std::fs::write(&seq, edited).unwrap();
-    let out = inspect(&[seq.to_str().unwrap(), "--config", &path_arg(NN_MEAN)]);
+    let out = inspect(&[seq.to_str().unwrap(), "--calibration", &path_arg(NN_MEAN)]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -174,7 +174,7 @@ fn bad_inputs_exit_non_zero_naming_the_file() {
     std::fs::write(&cal, xml).unwrap();
     let out = inspect(&[
         &path_arg("SpinePhantomFreehand.igs.mha"),
-        "--config",
+        "--calibration",
         cal.to_str().unwrap(),
     ]);
     assert!(!out.status.success());
@@ -210,7 +210,7 @@ fn frames_in_one_plane_are_pointed_out() {
         path_arg("PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml");
     let out = inspect_ok(&[
         &path_arg("Prostate10_video.igs.mhd"),
-        "--config",
+        "--calibration",
         &nwire_config,
     ]);
     let text = String::from_utf8_lossy(&out.stdout);
@@ -238,7 +238,7 @@ fn a_frame_is_written_to_draw_the_first_band_on() {
     let first = dir.path().join("first.png");
     let out = inspect_ok(&[
         &spine,
-        "--config",
+        "--calibration",
         &path_arg(NN_MEAN),
         "--frame-png",
         first.to_str().unwrap(),

@@ -30,27 +30,33 @@ fn simulate(dir: &Path) {
 }
 
 fn start_extract(sim: &Path, out: &Path) -> Child {
+    // The model has no flag: it is an output of the option file, kept beside the sweep.
+    let options = sim.join(format!(
+        "{}.toml",
+        out.file_name().unwrap().to_string_lossy()
+    ));
+    std::fs::write(
+        &options,
+        format!(
+            "[tuning.sampling]\nbin_mm = 0.0\n[outputs]\nmodel = {:?}\n",
+            out.join("model.esrbf").to_str().unwrap()
+        ),
+    )
+    .unwrap();
     Command::new(BIN)
         .arg("extract")
         .arg(sim.join("sim.mha"))
-        .arg("--config")
+        .arg("--calibration")
         .arg(sim.join("sim_config.xml"))
         .arg("--out")
         .arg(out.join("mesh.ply"))
         .arg("--report")
         .arg(out.join("report.json"))
-        .arg("--model")
-        .arg(out.join("model.esrbf"))
+        .arg("--config")
+        .arg(&options)
         .arg("--preview")
         .arg(out.join("preview.png"))
-        .args([
-            "--max-samples",
-            "400000",
-            "--resolution",
-            "0.15",
-            "--sample-bin",
-            "0",
-        ])
+        .args(["--max-samples", "400000", "--resolution", "0.15"])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()

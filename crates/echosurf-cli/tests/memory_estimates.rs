@@ -5,7 +5,7 @@
 mod common;
 
 use std::ffi::OsString;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Largest allowed factor between the estimate and the measured peak, either way (issue 28).
 const MAX_RATIO: f64 = 1.5;
@@ -55,6 +55,21 @@ fn iso_of(report: &Path) -> String {
         .to_string()
 }
 
+/// An `extract --config` file in `dir` asking for the model and the samples too (they have no flag).
+fn outputs_config(dir: &Path, model: &Path, samples: &Path) -> PathBuf {
+    let file = dir.join("outputs.toml");
+    std::fs::write(
+        &file,
+        format!(
+            "[outputs]\nmodel = {:?}\nsamples = {:?}\n",
+            model.to_str().unwrap(),
+            samples.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    file
+}
+
 #[test]
 fn every_budgeted_command_estimates_its_peak_within_one_and_a_half_times() {
     let dir = tempfile::tempdir().unwrap();
@@ -71,14 +86,12 @@ fn every_budgeted_command_estimates_its_peak_within_one_and_a_half_times() {
         &os(&[
             &"extract",
             &seq,
-            &"--config",
+            &"--calibration",
             &config,
             &"--out",
             &mesh,
-            &"--model",
-            &model,
-            &"--samples",
-            &samples,
+            &"--config",
+            &outputs_config(d, &model, &samples),
             &"--report",
             &json,
         ]),
@@ -88,7 +101,7 @@ fn every_budgeted_command_estimates_its_peak_within_one_and_a_half_times() {
         &os(&[
             &"extract",
             &seq,
-            &"--config",
+            &"--calibration",
             &config,
             &"--method",
             &"voxel",
@@ -101,7 +114,7 @@ fn every_budgeted_command_estimates_its_peak_within_one_and_a_half_times() {
         &os(&[
             &"reconstruct",
             &seq,
-            &"--config",
+            &"--calibration",
             &config,
             &"--out",
             &d.join("v.mha"),
@@ -135,14 +148,12 @@ fn fit_and_surface_refuse_past_the_budget_naming_the_option() {
     common::echosurf_ok(&os(&[
         &"extract",
         &seq,
-        &"--config",
+        &"--calibration",
         &config,
         &"--out",
         &d.join("m.ply"),
-        &"--model",
-        &model,
-        &"--samples",
-        &samples,
+        &"--config",
+        &outputs_config(d, &model, &samples),
         &"--report",
         &json,
     ]));
@@ -200,7 +211,7 @@ fn running_out_of_address_space_is_an_error_not_an_abort() {
     // binary, the thread stacks and the allocator's arenas but not the run.
     let output = std::process::Command::new("/bin/sh")
         .arg("-c")
-        .arg("ulimit -v 150000 && exec \"$0\" extract \"$1\" --config \"$2\" --out \"$3\"")
+        .arg("ulimit -v 150000 && exec \"$0\" extract \"$1\" --calibration \"$2\" --out \"$3\"")
         .arg(env!("CARGO_BIN_EXE_echosurf"))
         .arg(&seq)
         .arg(&config)

@@ -8,13 +8,13 @@ mod common;
 mod real_data;
 use real_data::real;
 
-/// `echosurf reconstruct SEQ --config CONFIG --out OUT EXTRA...`.
+/// `echosurf reconstruct SEQ --calibration CONFIG --out OUT EXTRA...`.
 fn reconstruct_args(seq: &Path, config: &Path, out: &Path, extra: &[&str]) -> Vec<String> {
     let path = |p: &Path| p.display().to_string();
     let mut args = vec![
         "reconstruct".to_string(),
         path(seq),
-        "--config".into(),
+        "--calibration".into(),
         path(config),
         "--out".into(),
         path(out),

@@ -174,11 +174,11 @@ fn frame_outlines_of_a_recording_are_drawn_over_the_mesh() {
     };
     let (spine_arg, config_arg) = (spine.to_str().unwrap(), config.to_str().unwrap());
     let without = yellow_pixels(&[]);
-    let every_8th = yellow_pixels(&["--sequence", spine_arg, "--config", config_arg]);
+    let every_8th = yellow_pixels(&["--sequence", spine_arg, "--calibration", config_arg]);
     let every_frame = yellow_pixels(&[
         "--sequence",
         spine_arg,
-        "--config",
+        "--calibration",
         config_arg,
         "--outline-every",
         "1",
@@ -190,7 +190,7 @@ fn frame_outlines_of_a_recording_are_drawn_over_the_mesh() {
 
     // The sequence's options mean nothing without it; no frame at all is refused.
     for (extra, says) in [
-        (vec!["--config", config_arg], "--sequence"),
+        (vec!["--calibration", config_arg], "--sequence"),
         (vec!["--outline-every", "2"], "--sequence"),
         (
             vec!["--sequence", spine_arg, "--outline-every", "0"],

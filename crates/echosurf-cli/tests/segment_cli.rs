@@ -9,7 +9,7 @@ use real_data::real;
 fn spine_args() -> Vec<String> {
     vec![
         real("SpinePhantomFreehand.igs.mha").display().to_string(),
-        "--config".into(),
+        "--calibration".into(),
         real("PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
             .display()
             .to_string(),

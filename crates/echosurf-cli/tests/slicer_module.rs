@@ -61,7 +61,7 @@ fn the_description_has_what_slicer_needs() {
             .find(|n| child(**n, "name").as_deref() == Some(name))
             .unwrap_or_else(|| panic!("no parameter {name}"))
     };
-    for (name, index) in [("sequence", "0"), ("config", "1")] {
+    for (name, index) in [("sequence", "0"), ("calibration", "1")] {
         let p = find(name);
         assert_eq!(p.tag_name().name(), "file");
         assert_eq!(child(p, "channel").as_deref(), Some("input"));

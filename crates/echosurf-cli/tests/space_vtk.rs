@@ -11,7 +11,7 @@ fn extract(seq: &Path, config: &Path, out: &Path, report: &Path, space: &str) {
     echosurf_ok(&[
         "extract",
         seq.to_str().unwrap(),
-        "--config",
+        "--calibration",
         config.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),

@@ -15,7 +15,7 @@ use echosurf::progress::NoProgress;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The manifest (TOML): `[[sweep]]` tables with `sequence`, `config`, optional `name` and `options`.
+    /// The manifest (TOML): `[[sweep]]` tables with `sequence`, `calibration` (the PLUS XML; `config` also read), optional `name` and `options`.
     pub manifest: PathBuf,
     /// Folder for the meshes, reports and summary (created if missing).
     #[arg(long)]
@@ -75,7 +75,9 @@ struct Row {
     /// Output base name; default: the sequence's file name up to its first dot.
     name: Option<String>,
     sequence: PathBuf,
-    config: PathBuf,
+    /// The PLUS device-set XML; `config`, its old name, is still read.
+    #[serde(alias = "config")]
+    calibration: PathBuf,
     /// `echosurf extract` options for this sweep, e.g. `["--sheet", "ridge"]`.
     #[serde(default)]
     options: Vec<String>,
@@ -87,7 +89,8 @@ struct Job {
     row: usize,
     name: String,
     sequence: PathBuf,
-    config: PathBuf,
+    #[serde(alias = "config")]
+    calibration: PathBuf,
     options: Vec<String>,
     mesh: String,
 }
@@ -155,7 +158,7 @@ fn read_jobs(args: &Args, extension: &str) -> anyhow::Result<Vec<Job>> {
             row: k,
             name: name.clone(),
             sequence: base.join(&row.sequence),
-            config: base.join(&row.config),
+            calibration: base.join(&row.calibration),
             options: manifest
                 .options
                 .iter()
@@ -208,8 +211,8 @@ fn run_job(dir: &Path, job: &Job) -> anyhow::Result<Outcome> {
     let mut words: Vec<std::ffi::OsString> = vec![
         "extract".into(),
         job.sequence.clone().into(),
-        "--config".into(),
-        job.config.clone().into(),
+        "--calibration".into(),
+        job.calibration.clone().into(),
         "--out".into(),
         mesh.into(),
     ];
@@ -217,7 +220,11 @@ fn run_job(dir: &Path, job: &Job) -> anyhow::Result<Outcome> {
     let args = ExtractCommand::try_parse_from(words)
         .map_err(|e| anyhow::anyhow!("options {:?}: {}", job.options, e.to_string().trim_end()))?
         .args;
-    if args.report.is_some() || args.iso.contains(',') {
+    let several_levels = matches!(
+        args.extract_config()?.user.iso,
+        echosurf::pipeline::IsoLevels::Levels(ref levels) if levels.len() > 1
+    );
+    if args.report.is_some() || several_levels {
         anyhow::bail!(
             "a batch row writes its own report and one mesh: no --report, one --iso level"
         );
@@ -404,13 +411,16 @@ mod tests {
         };
         let write = |text: &str| std::fs::write(&manifest, text).unwrap();
         write(
-            "[[sweep]]\nsequence = \"a/p1.igs.mha\"\nconfig = \"c.xml\"\n[[sweep]]\nsequence = \"p2.mha\"\nconfig = \"c.xml\"\noptions = [\"--sheet\", \"iso\"]\n[[sweep]]\nname = \"x\"\nsequence = \"p3.mha\"\nconfig = \"c.xml\"\n",
+            "[[sweep]]\nsequence = \"a/p1.igs.mha\"\ncalibration = \"c.xml\"\n[[sweep]]\nsequence = \"p2.mha\"\ncalibration = \"d.xml\"\noptions = [\"--sheet\", \"iso\"]\n[[sweep]]\nname = \"x\"\nsequence = \"p3.mha\"\nconfig = \"c.xml\"\n",
         );
         let jobs = read_jobs(&args(None), "ply").unwrap();
         let names: Vec<&str> = jobs.iter().map(|j| j.name.as_str()).collect();
         assert_eq!(names, ["p1", "p2", "x"]);
         assert_eq!(jobs[0].sequence, dir.path().join("a/p1.igs.mha"));
         assert_eq!(jobs[1].options, ["--sheet", "iso"]);
+        // `config`, the column's old name, still reads as `calibration`.
+        assert_eq!(jobs[1].calibration, dir.path().join("d.xml"));
+        assert_eq!(jobs[2].calibration, dir.path().join("c.xml"));
         let shard = |i| {
             read_jobs(&args(Some(Shard { index: i, count: 2 })), "ply")
                 .unwrap()

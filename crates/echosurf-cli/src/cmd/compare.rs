@@ -53,7 +53,7 @@ pub struct Args {
     pub sequence: Option<PathBuf>,
     /// PLUS device-set XML of the sequence (Image->Probe calibration, clip rectangle).
     #[arg(long, requires = "sequence")]
-    pub config: Option<PathBuf>,
+    pub calibration: Option<PathBuf>,
     /// World frame of the sequence's poses, as in `extract`: auto, tracker or reference.
     #[arg(long, requires = "sequence", default_value = "auto")]
     pub world: String,
@@ -123,7 +123,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let Some(sequence) = &args.sequence {
             inputs.extend(io::sequence_files(sequence));
         }
-        inputs.extend(args.config.iter().cloned());
+        inputs.extend(args.calibration.iter().cloned());
         check_outputs(&inputs, &maps)?;
     }
     let (mesh, mesh_tag) = echosurf::io::read_mesh_and_space(&args.mesh)?;
@@ -155,7 +155,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         None => None,
         Some(path) => {
             let (sequence, calibration, poses) =
-                super::extract::posed_sequence(path, args.config.as_deref(), &args.world)?;
+                super::extract::posed_sequence(path, args.calibration.as_deref(), &args.world)?;
             swept_frame = Some(poses.world_frame.clone());
             let image_to_world: Vec<_> = poses.poses.iter().map(|p| p.image_to_world).collect();
             let score = SweptFacingTruth::new(

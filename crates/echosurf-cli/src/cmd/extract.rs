@@ -5,137 +5,298 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use echosurf::io;
 use echosurf::pipeline::{
-    self, ExtractOptions, ExtractOutput, IsoLevels, Method, Sheet, VoxelRouteOptions, WeakEchoes,
+    self, ExtractConfig, ExtractOutput, IsoLevels, Method, MethodChoice, Sheet,
 };
-use echosurf::rbf::FitOptions;
 use echosurf::render::{RenderOptions, render_views, write_png};
 use echosurf::segment::InitialBand;
-use echosurf::surface::{SheetOptions, SurfaceOptions};
 
 use super::outputs::{Holds, Output, check_outputs, output};
-use super::segment::{SegmentArgs, world_choice};
+use super::segment::world_choice;
 use crate::progress::BarProgress;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    #[command(flatten)]
-    pub segment: SegmentArgs,
-    /// Iso-level(s) of the boundary echo, comma separated (one mesh each), or `auto`: between the
-    /// background and boundary echo levels of the kept pixels.
-    #[arg(long, default_value = "auto")]
-    pub iso: String,
+    /// Tracked sequence (.igs.mha, .mhd, .igs.nrrd).
+    #[arg(required_unless_present = "print_config")]
+    pub sequence: Option<PathBuf>,
+    /// PLUS device-set XML with the Image->Probe calibration (and clip rectangle).
+    #[arg(long, required_unless_present = "print_config")]
+    pub calibration: Option<PathBuf>,
     /// Output mesh (.ply, .stl, .obj or .vtk). With several levels, `_iso<LEVEL>` is added before the
     /// extension.
+    #[arg(long, required_unless_present = "print_config")]
+    pub out: Option<PathBuf>,
+    /// Initial band for the first frame of each sweep: a PNG mask of the frame size (non-zero = band) or a
+    /// JSON polygon {"polygon": [[u, v], ...]} in pixels of the MF-oriented frame. Default: found
+    /// automatically (bright connected echo structures).
     #[arg(long)]
-    pub out: PathBuf,
-    #[command(flatten)]
-    pub space: super::space::SpaceArg,
-    /// Route: `rbf` (segment, fit one RBF to the kept pixels, surface it) or `voxel` (PLUS-like volume of
-    /// all clipped pixels with the config's VolumeReconstruction settings, Gaussian, marching cubes).
-    #[arg(long, default_value = "rbf")]
-    pub method: String,
-    /// Voxel route: sigma of the Gaussian pre-smoothing in mm (0 = none).
-    #[arg(long, default_value_t = 1.0)]
-    pub voxel_smoothing: f64,
-    /// Voxel route: grid spacing in mm (default: the config's OutputSpacing, else --resolution).
+    pub init: Option<PathBuf>,
+    /// Iso-level(s) of the boundary echo, comma separated (one mesh each), or `auto` (the default):
+    /// between the background and boundary echo levels of the kept pixels.
     #[arg(long)]
-    pub voxel_spacing: Option<f64>,
-    /// Voxel route: refuse grids needing more memory than this many MB.
-    #[arg(long)]
-    pub voxel_memory_mb: Option<u64>,
-    /// Random decimation target for the samples handed to the fit.
-    #[arg(long, default_value_t = 100_000)]
-    pub max_samples: usize,
-    /// Smoothing weight w in mm (larger = smoother; 0 interpolates the speckle).
+    pub iso: Option<String>,
+    /// Smoothing weight w in mm (larger = smoother; 0 interpolates the speckle) [default: 2].
     #[arg(long)]
     pub smoothing: Option<f64>,
-    /// RBF solver: auto (partition of unity above 2,000 samples), direct, pu, or fast (the single
-    /// global spline; slower).
-    #[arg(long, default_value = "auto")]
-    pub solver: String,
-    /// Fitting accuracy: largest allowed |s(x_i) - f_i - w l_i| in grey levels.
-    #[arg(long)]
-    pub accuracy: Option<f64>,
-    /// Lattice spacing of the surfacer in mm.
-    #[arg(long, default_value_t = 0.5)]
-    pub resolution: f64,
-    /// Region of trust: no surface farther than this (mm) from any sample. Default: from frame spacing.
-    #[arg(long)]
-    pub trust_distance: Option<f64>,
-    /// Average kept pixels over blocks of about this size (mm) before decimation; 0 = single pixels.
-    #[arg(long, default_value_t = 0.4)]
-    pub sample_bin: f64,
-    /// Echo-priority thinning: keep the samples within this many mm of an echo first (up to half the
-    /// budget), the rest at random; 0 = the paper's uniform random decimation.
-    #[arg(long, default_value_t = pipeline::DEFAULT_ECHO_MARGIN_MM)]
-    pub echo_margin: f64,
     /// Output surface: `iso` (the iso-surface, a sheath of two sheets around a thin echo), `ridge`
     /// (one smooth sheet through the echo's ridge: on the boundary, open where no echo came back), or
-    /// `auto`: the ridge sheet on a bone sweep and where the echoes are thin ridges (80 % of the
-    /// iso-surface's probe side finds the echo's peak within 1.5 mm along the beam), the iso-surface
-    /// otherwise.
-    #[arg(long, default_value = "auto")]
-    pub sheet: String,
-    /// Ridge sheet: distance (mm) over which the sheet averages the ridge points.
-    #[arg(long, default_value_t = SheetOptions::default().smoothing_mm)]
-    pub ridge_smoothing: f64,
-    /// Ridge sheet: how far (mm) the sheet may reach from the nearest ridge point (larger bridges more
-    /// gaps and extrapolates more at the edges).
-    #[arg(long, default_value_t = SheetOptions::default().reach_mm)]
-    pub ridge_reach: f64,
-    /// Ridge sheet: also bridge gaps between its pieces over up to this many mm in the sheet's plane,
-    /// where points surround the gap on a common plane (no overhang at rims, no ramps across folds or
-    /// steps); 0 = off.
-    #[arg(long, default_value_t = SheetOptions::default().bridge_mm)]
-    pub ridge_bridge: f64,
-    /// Ridge sheet: also take the ridges of weaker echoes, whose peak passes a lower level this
-    /// fraction of the way from the iso-level down to the background, where they continue the ridge of
-    /// a strong echo (hysteresis: fills the sheet between frames and along walls turning from the beam);
-    /// 0 = off.
-    #[arg(long, default_value_t = WeakEchoes::default().level_fraction)]
-    pub ridge_weak: f64,
-    /// Ridge sheet: how far (mm) a weak echo's ridge may continue from a strong one.
-    #[arg(long, default_value_t = WeakEchoes::default().reach_mm)]
-    pub ridge_weak_reach: f64,
-    /// Ridge sheet: first remove the triangles farther than this (mm) from every echo (a kept sample
-    /// block as bright as the lowest level the sheet was drawn at, reaching out of its frame half the
-    /// gap to the next frame): flaps the fitted function made where no echo was recorded. 0 keeps them.
-    #[arg(long, default_value_t = pipeline::DEFAULT_MAX_ECHO_DISTANCE_MM, value_name = "MM")]
-    pub max_echo_distance: f64,
-    /// Remove connected pieces of the surface smaller than this (mm^2); 0 keeps all. Default: 5 for the
-    /// iso sheet, 2 for the ridge sheet.
+    /// `auto` (the default): the ridge sheet on a bone sweep and where the echoes are thin ridges, the
+    /// iso-surface otherwise.
     #[arg(long)]
-    pub min_component_area: Option<f64>,
-    /// Remove pieces of the surface that echoes from fewer than this many frames back (an echo: a kept
-    /// sample block at or above the surface's level within 1 mm); 0 keeps every piece.
-    #[arg(long, default_value_t = pipeline::DEFAULT_MIN_ECHO_FRAMES)]
-    pub min_echo_frames: usize,
-    /// Join kept pieces whose boundaries pass within this distance (mm) of each other, facing each
-    /// other and facing alike, and close the seam between them; 0 joins nothing.
-    #[arg(long, default_value_t = pipeline::DEFAULT_BRIDGE_GAP_MM)]
-    pub bridge_gap: f64,
-    /// Peel this many rings of triangles off each piece's rim, never cutting or removing a piece: the
-    /// rims are the least accurate part of the surface. 0 keeps them.
-    #[arg(long, default_value_t = 0, value_name = "RINGS")]
-    pub trim_rim: usize,
-    /// Seed of the random decimation (and of everything else random).
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
+    pub sheet: Option<String>,
+    /// Lattice spacing of the surfacer in mm [default: 0.5].
+    #[arg(long)]
+    pub resolution: Option<f64>,
+    /// Random decimation target for the samples handed to the fit [default: 100000].
+    #[arg(long)]
+    pub max_samples: Option<usize>,
+    /// Route: `rbf` (the default: segment, fit one RBF to the kept pixels, surface it) or `voxel`
+    /// (PLUS-like volume of all clipped pixels with the calibration's VolumeReconstruction settings,
+    /// Gaussian, marching cubes).
+    #[arg(long)]
+    pub method: Option<String>,
+    /// Seed of the random decimation (and of everything else random) [default: 1].
+    #[arg(long)]
+    pub seed: Option<u64>,
     /// Refuse up front when the run would need more than this many MB (default: half the machine's memory).
     #[arg(long)]
     pub memory_budget: Option<f64>,
+    #[command(flatten)]
+    pub space: super::space::SpaceArg,
     /// Write what every stage did (counts, parameters, time, peak memory) as JSON.
     #[arg(long)]
     pub report: Option<PathBuf>,
     /// Write a rendered picture of the mesh with the frame outlines.
     #[arg(long)]
     pub preview: Option<PathBuf>,
-    /// Also save the fitted model (.esrbf) for `echosurf surface`.
+    /// Every other option (segmentation, sampling, fit, surfacer, ridge sheet, clean-up, voxel route)
+    /// from this TOML file, as `--print-config` writes it; missing keys take the defaults and the
+    /// options above override it.
+    #[arg(long, value_name = "FILE.toml")]
+    pub config: Option<PathBuf>,
+    /// Write the full option set (the defaults, with --config and the options above applied) as TOML
+    /// to stdout and exit.
     #[arg(long)]
+    pub print_config: bool,
+}
+
+/// The paths a run needs: present unless `--print-config` (clap checks).
+struct RunPaths<'a> {
+    sequence: &'a Path,
+    calibration: &'a Path,
+    out: &'a Path,
+}
+
+impl Args {
+    fn paths(&self) -> anyhow::Result<RunPaths<'_>> {
+        match (&self.sequence, &self.calibration, &self.out) {
+            (Some(sequence), Some(calibration), Some(out)) => Ok(RunPaths {
+                sequence,
+                calibration,
+                out,
+            }),
+            _ => anyhow::bail!("give the sequence, --calibration and --out"),
+        }
+    }
+
+    /// Every file this reads: the sequence (with a detached data file), the calibration, the band
+    /// and the option file.
+    fn input_files(&self) -> Vec<PathBuf> {
+        let mut files: Vec<PathBuf> = self
+            .sequence
+            .iter()
+            .flat_map(|s| io::sequence_files(s))
+            .collect();
+        files.extend(self.calibration.iter().cloned());
+        files.extend(self.init.iter().cloned());
+        files.extend(self.config.iter().cloned());
+        files
+    }
+
+    /// The option set: the defaults, then `--config`, then the user options given here; validated.
+    pub fn extract_config(&self) -> anyhow::Result<ExtractConfig> {
+        Ok(self.config_file()?.options())
+    }
+
+    /// [`Self::extract_config`] with the `[outputs]` of `--config`.
+    pub fn config_file(&self) -> anyhow::Result<ConfigFile> {
+        let mut file = match &self.config {
+            Some(path) => read_config(path)?,
+            None => ConfigFile::default(),
+        };
+        let config = &mut file.options;
+        let user = &mut config.user;
+        if let Some(iso) = &self.iso {
+            user.iso = parse_iso(iso)?;
+        }
+        if let Some(w) = self.smoothing {
+            user.smoothing_mm = w;
+        }
+        if let Some(sheet) = &self.sheet {
+            user.sheet = parse_sheet(sheet)?;
+        }
+        if let Some(mm) = self.resolution {
+            user.resolution_mm = mm;
+        }
+        if let Some(n) = self.max_samples {
+            user.max_samples = n;
+        }
+        if let Some(method) = &self.method {
+            user.method = match method.to_ascii_lowercase().as_str() {
+                "rbf" => MethodChoice::Rbf,
+                "voxel" => MethodChoice::Voxel,
+                other => anyhow::bail!("--method {other}: expected rbf or voxel"),
+            };
+        }
+        if let Some(seed) = self.seed {
+            user.seed = seed;
+        }
+        if let Some(mb) = self.memory_budget {
+            config.tuning.memory_budget_mb = Some(mb);
+        }
+        config.validate().map_err(|e| {
+            let flag = cli_flag(&e.field);
+            match (&self.config, flag) {
+                // Given on the command line: the flag is what the user typed.
+                (_, Some(flag)) if flag_given(self, flag) => {
+                    anyhow::anyhow!("{flag} {}", e.problem)
+                }
+                (Some(path), _) => anyhow::anyhow!("{}: {e}", path.display()),
+                (None, Some(flag)) => anyhow::anyhow!("{flag} {}", e.problem),
+                (None, None) => anyhow::anyhow!("{e}"),
+            }
+        })?;
+        Ok(file)
+    }
+}
+
+/// The `--config` file: both tiers of options, and the niche outputs that have no flag.
+#[derive(Debug, Clone, Default)]
+pub struct ConfigFile {
+    pub options: ExtractConfig,
+    pub outputs: ExtraOutputs,
+}
+
+impl ConfigFile {
+    pub fn options(self) -> ExtractConfig {
+        self.options
+    }
+
+    /// The file as `--print-config` writes it: every option with its value, then `[outputs]`
+    /// (commented out where not set).
+    pub fn to_toml(&self) -> anyhow::Result<String> {
+        let mut text = toml::to_string(&self.options)?;
+        text.push_str("\n[outputs]\n");
+        let line = |key: &str, path: &Option<PathBuf>, example: &str, what: &str| match path {
+            Some(p) => format!(
+                "{key} = {}  # {what}\n",
+                toml::Value::from(p.display().to_string())
+            ),
+            None => format!("# {key} = \"{example}\"  # {what}\n"),
+        };
+        text.push_str(&line(
+            "model",
+            &self.outputs.model,
+            "model.esrbf",
+            "also save the fitted model, for `echosurf surface`",
+        ));
+        text.push_str(&line(
+            "samples",
+            &self.outputs.samples,
+            "samples.ply",
+            "also write the fitted samples as a point cloud",
+        ));
+        Ok(text)
+    }
+}
+
+/// `[outputs]` of the `--config` file (paths relative to the working directory, as on the command line).
+#[derive(Debug, Clone, Default, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ExtraOutputs {
+    /// Also save the fitted model (.esrbf) for `echosurf surface`.
     pub model: Option<PathBuf>,
     /// Also write the fitted samples as a point cloud PLY.
-    #[arg(long)]
     pub samples: Option<PathBuf>,
+}
+
+/// What the `--config` TOML holds.
+#[derive(Debug, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct ConfigToml {
+    user: echosurf::pipeline::UserOptions,
+    tuning: echosurf::pipeline::Tuning,
+    outputs: ExtraOutputs,
+}
+
+impl Default for ConfigToml {
+    fn default() -> Self {
+        let ExtractConfig { user, tuning } = ExtractConfig::default();
+        ConfigToml {
+            user,
+            tuning,
+            outputs: ExtraOutputs::default(),
+        }
+    }
+}
+
+/// The command-line flag of a user-tier field, if it has one.
+fn cli_flag(field: &str) -> Option<&'static str> {
+    Some(match field {
+        "user.iso" => "--iso",
+        "user.smoothing_mm" => "--smoothing",
+        "user.resolution_mm" => "--resolution",
+        "user.max_samples" => "--max-samples",
+        "tuning.memory_budget_mb" => "--memory-budget",
+        _ => return None,
+    })
+}
+
+/// Whether `flag` was given on the command line.
+fn flag_given(args: &Args, flag: &str) -> bool {
+    match flag {
+        "--iso" => args.iso.is_some(),
+        "--smoothing" => args.smoothing.is_some(),
+        "--resolution" => args.resolution.is_some(),
+        "--max-samples" => args.max_samples.is_some(),
+        "--memory-budget" => args.memory_budget.is_some(),
+        _ => false,
+    }
+}
+
+/// Reads `--config FILE.toml`: unknown keys and bad values are errors naming the file and the key;
+/// a PLUS XML (the old meaning of `--config`) gets a pointer to `--calibration`.
+pub fn read_config(path: &Path) -> anyhow::Result<ConfigFile> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let is_xml_name = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("xml"));
+    let text = String::from_utf8_lossy(&bytes);
+    if is_xml_name
+        || text
+            .trim_start_matches('\u{feff}')
+            .trim_start()
+            .starts_with('<')
+    {
+        anyhow::bail!(
+            "{} is a PLUS device-set XML; give it with --calibration (--config takes the TOML that \
+             `echosurf extract --print-config` writes)",
+            path.display()
+        );
+    }
+    let file: ConfigToml = toml::from_str(&text)
+        .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.to_string().trim_end()))?;
+    let options = ExtractConfig {
+        user: file.user,
+        tuning: file.tuning,
+    };
+    options
+        .validate()
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    Ok(ConfigFile {
+        options,
+        outputs: file.outputs,
+    })
 }
 
 /// Parses `--iso`: `auto` or comma-separated numbers.
@@ -203,34 +364,6 @@ fn format_level(level: f64) -> String {
         format!("{}", level as f32)
     } else {
         format!("{level}")
-    }
-}
-
-/// `--method` and the voxel route's options.
-fn parse_method(args: &Args) -> anyhow::Result<Method> {
-    match args.method.to_ascii_lowercase().as_str() {
-        "rbf" => Ok(Method::Rbf),
-        "voxel" => {
-            if !(args.voxel_smoothing.is_finite() && args.voxel_smoothing >= 0.0) {
-                anyhow::bail!("--voxel-smoothing must be a non-negative number of mm");
-            }
-            if let Some(s) = args.voxel_spacing
-                && !(s.is_finite() && s > 0.0)
-            {
-                anyhow::bail!("--voxel-spacing must be a positive number of mm");
-            }
-            Ok(Method::Voxel(VoxelRouteOptions {
-                spacing_mm: args.voxel_spacing,
-                smoothing_sigma_mm: args.voxel_smoothing,
-                // --voxel-memory-mb, else --memory-budget when given (else the voxel default).
-                memory_budget_bytes: match (args.voxel_memory_mb, args.memory_budget) {
-                    (Some(mb), _) => Some(mb.saturating_mul(1 << 20)),
-                    (None, Some(_)) => Some(memory_budget_bytes(args.memory_budget)?),
-                    (None, None) => None,
-                },
-            }))
-        }
-        other => anyhow::bail!("--method {other}: expected rbf or voxel"),
     }
 }
 
@@ -341,6 +474,10 @@ pub(crate) fn posed_sequence(
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if args.print_config {
+        out!("{}", args.config_file()?.to_toml()?);
+        return Ok(());
+    }
     run_with(args, &BarProgress::new()).map(|_| ())
 }
 
@@ -350,119 +487,49 @@ pub fn run_with(
     args: Args,
     progress: &dyn echosurf::progress::Progress,
 ) -> anyhow::Result<ExtractOutput> {
-    let seg = &args.segment;
-    let iso = parse_iso(&args.iso)?;
-    if !(args.resolution.is_finite() && args.resolution > 0.0) {
-        anyhow::bail!("--resolution must be a positive number of mm");
+    if args.print_config {
+        anyhow::bail!("--print-config writes the options and runs nothing");
     }
-    for (flag, mm) in [
-        ("--ridge-smoothing", args.ridge_smoothing),
-        ("--ridge-reach", args.ridge_reach),
-        ("--ridge-weak-reach", args.ridge_weak_reach),
-    ] {
-        if !(mm.is_finite() && mm > 0.0) {
-            anyhow::bail!("{flag} must be a positive number of mm, got {mm}");
-        }
-    }
-    if !(args.ridge_bridge.is_finite() && args.ridge_bridge >= 0.0) {
-        anyhow::bail!(
-            "--ridge-bridge must be 0 or a positive number of mm, got {}",
-            args.ridge_bridge
-        );
-    }
-    if !(args.ridge_weak.is_finite() && (0.0..1.0).contains(&args.ridge_weak)) {
-        anyhow::bail!(
-            "--ridge-weak must be a fraction in [0, 1) of the way from the iso-level to the background, got {}",
-            args.ridge_weak
-        );
-    }
-    check_outputs(&seg.input_files(), &planned_outputs(&args, &iso))?;
-    let sequence = super::inputs::read_sequence(&seg.sequence)?;
-    let calibration = io::read_calibration(&seg.config)?;
-    let init = match &seg.init {
+    let ConfigFile {
+        options: config,
+        outputs: extra,
+    } = args.config_file()?;
+    let paths = args.paths()?;
+    check_outputs(
+        &args.input_files(),
+        &planned_outputs(&args, &extra, paths.out, &config.user.iso),
+    )?;
+    let sequence = super::inputs::read_sequence(paths.sequence)?;
+    let calibration = io::read_calibration(paths.calibration)?;
+    let init = match &args.init {
         Some(path) => InitialBand::load(path, sequence.width, sequence.height)?,
         None => InitialBand::Auto,
     };
     // After the band: a bad band file is the more specific complaint.
-    super::inputs::check_clip(&calibration, &sequence, &seg.config, &seg.sequence)?;
-    let method = parse_method(&args)?;
-    let defaults = FitOptions::default();
-    let options = ExtractOptions {
-        method,
-        iso,
-        init,
-        segment: seg.options(),
-        reference: world_choice(&seg.world)?,
-        max_samples: args.max_samples,
-        seed: args.seed,
-        fit: FitOptions {
-            smoothing: args.smoothing.unwrap_or(pipeline::DEFAULT_SMOOTHING_MM),
-            accuracy: args.accuracy.unwrap_or(defaults.accuracy),
-            seed: args.seed,
-            solver: super::fit::parse_solver(&args.solver)?,
-            ..defaults
-        },
-        surface: SurfaceOptions {
-            resolution_mm: args.resolution,
-            ..SurfaceOptions::default()
-        },
-        trust_distance_mm: args.trust_distance,
-        sample_bin_mm: args.sample_bin,
-        echo_margin_mm: echo_margin(args.echo_margin)?,
-        sheet: parse_sheet(&args.sheet)?,
-        echo_sheet: SheetOptions {
-            smoothing_mm: args.ridge_smoothing,
-            reach_mm: args.ridge_reach,
-            bridge_mm: args.ridge_bridge,
-            ..SheetOptions::default()
-        },
-        weak_echoes: WeakEchoes {
-            level_fraction: args.ridge_weak,
-            reach_mm: args.ridge_weak_reach,
-        },
-        min_echo_frames: args.min_echo_frames,
-        trim_rim_rings: args.trim_rim,
-        max_echo_distance_mm: if args.max_echo_distance.is_finite() && args.max_echo_distance >= 0.0
-        {
-            args.max_echo_distance
-        } else {
-            anyhow::bail!("--max-echo-distance must be a distance in mm >= 0")
-        },
-        bridge_gap_mm: if args.bridge_gap.is_finite() && args.bridge_gap >= 0.0 {
-            args.bridge_gap
-        } else {
-            anyhow::bail!("--bridge-gap must be a distance in mm >= 0")
-        },
-        min_component_area_mm2: match args.min_component_area {
-            Some(a) if !(a.is_finite() && a >= 0.0) => {
-                anyhow::bail!("--min-component-area must be an area in mm^2 >= 0")
-            }
-            a => a,
-        },
-        memory_budget_bytes: Some(memory_budget_bytes(args.memory_budget)?),
-    };
+    super::inputs::check_clip(&calibration, &sequence, paths.calibration, paths.sequence)?;
+    let options = config.to_extract_options(init);
     let voxel = matches!(options.method, Method::Voxel(_));
     let output = pipeline::extract(&sequence, Some(&calibration), &options, progress)
         .map_err(|e| {
             if voxel {
-                name_voxel_options(e, "--voxel-spacing")
+                name_voxel_options(e, "tuning.voxel.spacing_mm")
             } else {
                 e.into()
             }
         })
-        .with_context(|| format!("extracting a surface from {}", seg.sequence.display()))?;
-    write_outputs(&args, &output)?;
-    print_summary(&args, &output)?;
+        .with_context(|| format!("extracting a surface from {}", paths.sequence.display()))?;
+    write_outputs(&args, &extra, paths.out, &output)?;
+    print_summary(paths.out, &output)?;
     Ok(output)
 }
 
 /// The files `write_outputs` will write, each with the option that names it: one mesh per level
-/// (`--iso auto` is one level), then the optional model, samples, report and preview.
-fn planned_outputs(args: &Args, iso: &IsoLevels) -> Vec<Output> {
-    let mut files = mesh_outputs(&args.out, iso);
+/// (`--iso auto` is one level), then the optional model, report and preview.
+fn planned_outputs(args: &Args, extra: &ExtraOutputs, out: &Path, iso: &IsoLevels) -> Vec<Output> {
+    let mut files = mesh_outputs(out, iso);
     for (option, path, holds) in [
-        ("--model", &args.model, Holds::AnyName),
-        ("--samples", &args.samples, Holds::PointCloud),
+        ("outputs.model", &extra.model, Holds::AnyName),
+        ("outputs.samples", &extra.samples, Holds::PointCloud),
         ("--report", &args.report, Holds::AnyName),
         ("--preview", &args.preview, Holds::Png),
     ] {
@@ -471,23 +538,24 @@ fn planned_outputs(args: &Args, iso: &IsoLevels) -> Vec<Output> {
     files
 }
 
-/// Writes meshes, then the optional model, samples, report and preview (each atomically).
-pub fn write_outputs(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
+/// Writes meshes to `out`, then the optional model, report and preview (each atomically).
+pub fn write_outputs(
+    args: &Args,
+    extra: &ExtraOutputs,
+    out: &Path,
+    output: &ExtractOutput,
+) -> anyhow::Result<()> {
     let several = output.surfaces.len() > 1;
     for s in &output.surfaces {
-        io::write_mesh_in(
-            &mesh_path(&args.out, s.level, several),
-            &s.mesh,
-            args.space.space,
-        )?;
+        io::write_mesh_in(&mesh_path(out, s.level, several), &s.mesh, args.space.space)?;
     }
-    if let Some(path) = &args.model {
+    if let Some(path) = &extra.model {
         match &output.model {
             Some(model) => model.save(path)?,
-            None => anyhow::bail!("--model: the voxel route fits no model"),
+            None => anyhow::bail!("outputs.model: the voxel route fits no model"),
         }
     }
-    if let Some(path) = &args.samples {
+    if let Some(path) = &extra.samples {
         io::write_point_cloud(path, &output.samples.to_point_cloud())?;
     }
     if let Some(path) = &args.report {
@@ -583,7 +651,7 @@ fn print_sample_counts(
     Ok(())
 }
 
-fn print_summary(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
+fn print_summary(out: &Path, output: &ExtractOutput) -> anyhow::Result<()> {
     let r = &output.report;
     let c = &r.counts;
     if r.voxel.is_some() {
@@ -653,7 +721,7 @@ fn print_summary(args: &Args, output: &ExtractOutput) -> anyhow::Result<()> {
             } else {
                 "NOT manifold"
             },
-            mesh_path(&args.out, s.level, several).display()
+            mesh_path(out, s.level, several).display()
         );
     }
     let stages: Vec<String> = r

@@ -33,7 +33,7 @@ pub struct Args {
     pub sequence: PathBuf,
     /// PLUS device-set XML with the Image->Probe calibration (needed for positions and bounds in mm).
     #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub calibration: Option<PathBuf>,
     /// World frame to place the frames in.
     #[arg(long, value_enum, default_value = "auto")]
     pub reference: ReferenceArg,
@@ -54,12 +54,12 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(png) = &args.frame_png {
         let mut inputs = io::sequence_files(&args.sequence);
-        inputs.extend(args.config.iter().cloned());
+        inputs.extend(args.calibration.iter().cloned());
         check_outputs(&inputs, &[output("--frame-png", png, Holds::Png)])?;
     }
     let sequence = super::inputs::read_sequence(&args.sequence)?;
     let calibration = args
-        .config
+        .calibration
         .as_deref()
         .map(|c| super::inputs::read_calibration_for(c, &sequence, &args.sequence))
         .transpose()?;

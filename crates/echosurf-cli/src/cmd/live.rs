@@ -25,7 +25,7 @@ pub struct Args {
     pub transform: Option<String>,
     /// PLUS device-set XML with the Image->Probe calibration (and clip rectangle).
     #[arg(long)]
-    pub config: PathBuf,
+    pub calibration: PathBuf,
     /// Folder for the recorded sweep (live.igs.mha) and the final mesh (live_surface.ply).
     #[arg(long)]
     pub out: PathBuf,
@@ -62,7 +62,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.frames == Some(0) {
         anyhow::bail!("--frames must be at least 1");
     }
-    let calibration = echosurf::io::read_calibration(&args.config)?;
+    let calibration = echosurf::io::read_calibration(&args.calibration)?;
     if args.out.exists() && !args.out.is_dir() {
         anyhow::bail!("--out {}: exists and is not a folder", args.out.display());
     }

@@ -47,7 +47,7 @@ pub struct Args {
     pub sequence: PathBuf,
     /// PLUS device-set XML: calibration and VolumeReconstruction settings.
     #[arg(long)]
-    pub config: PathBuf,
+    pub calibration: PathBuf,
     /// Output volume (.mha).
     #[arg(long)]
     pub out: PathBuf,
@@ -73,14 +73,15 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut inputs = echosurf::io::sequence_files(&args.sequence);
-    inputs.push(args.config.clone());
+    inputs.push(args.calibration.clone());
     check_outputs(&inputs, &[output("--out", &args.out, Holds::MetaImage)])?;
     let started = Instant::now();
     let sequence = super::inputs::read_sequence(&args.sequence)?;
-    let calibration = super::inputs::read_calibration_for(&args.config, &sequence, &args.sequence)?;
-    let xml = std::fs::read_to_string(&args.config)
-        .with_context(|| format!("reading {}", args.config.display()))?;
-    let mut options = options_from_config_xml(&xml, &args.config)?;
+    let calibration =
+        super::inputs::read_calibration_for(&args.calibration, &sequence, &args.sequence)?;
+    let xml = std::fs::read_to_string(&args.calibration)
+        .with_context(|| format!("reading {}", args.calibration.display()))?;
+    let mut options = options_from_config_xml(&xml, &args.calibration)?;
     if options.clip.is_none() {
         options.clip = calibration.clip;
     }
@@ -105,7 +106,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         };
     }
     if let Some(f) = args.fill_holes {
-        let configured = echosurf::voxel::hole_filling_from_xml(&xml, &args.config)?;
+        let configured = echosurf::voxel::hole_filling_from_xml(&xml, &args.calibration)?;
         let pick =
             |want: fn(&HoleFillingElement) -> bool| configured.elements.iter().copied().find(&want);
         options.hole_filling = match f {
@@ -120,7 +121,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     options.memory_budget_bytes = super::extract::memory_budget_bytes(args.memory_budget)?;
     for ignored in &options.ignored_settings {
-        eprintln!("warning: {}: ignored {ignored}", args.config.display());
+        eprintln!("warning: {}: ignored {ignored}", args.calibration.display());
     }
 
     let poses = resolve_poses(

@@ -40,7 +40,7 @@ pub struct Args {
     pub sequence: Option<PathBuf>,
     /// PLUS device-set XML of the sequence (Image->Probe calibration, clip rectangle).
     #[arg(long, requires = "sequence")]
-    pub config: Option<PathBuf>,
+    pub calibration: Option<PathBuf>,
     /// World frame of the sequence's poses, as in `extract`: auto, tracker or reference.
     #[arg(long, requires = "sequence", default_value = "auto")]
     pub world: String,
@@ -56,7 +56,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(sequence) = &args.sequence {
         inputs.extend(echosurf::io::sequence_files(sequence));
     }
-    inputs.extend(args.config.iter().cloned());
+    inputs.extend(args.calibration.iter().cloned());
     check_outputs(&inputs, &[output("--out", &args.out, Holds::Png)])?;
     if args.outline_every == 0 {
         anyhow::bail!("--outline-every must be at least 1");
@@ -88,7 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let overlay_lines = match &args.sequence {
         Some(path) => {
             let (sequence, calibration, poses) =
-                super::extract::posed_sequence(path, args.config.as_deref(), &args.world)?;
+                super::extract::posed_sequence(path, args.calibration.as_deref(), &args.world)?;
             let outlines =
                 echosurf::pipeline::frame_outlines(&sequence, &poses, calibration.as_ref());
             super::extract::every_nth_outline(&outlines, args.outline_every)

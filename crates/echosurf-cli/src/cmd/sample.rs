@@ -45,14 +45,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         anyhow::bail!("--sample-bin must be a size in mm >= 0");
     }
     let sequence = super::inputs::read_sequence(&seg.sequence)?;
-    let calibration = io::read_calibration(&seg.config)?;
+    let calibration = io::read_calibration(&seg.calibration)?;
     let init = match (&seg.init, seg.auto_init) {
         (Some(path), false) => InitialBand::load(path, sequence.width, sequence.height)?,
         (None, true) => InitialBand::Auto,
         _ => anyhow::bail!("give the initial band with --init FILE or ask for --auto-init"),
     };
     // After the band: a bad band file is the more specific complaint.
-    super::inputs::check_clip(&calibration, &sequence, &seg.config, &seg.sequence)?;
+    super::inputs::check_clip(&calibration, &sequence, &seg.calibration, &seg.sequence)?;
     let options = ExtractOptions {
         init,
         segment: seg.options(),

@@ -31,7 +31,7 @@ pub struct SegmentArgs {
     pub sequence: PathBuf,
     /// PLUS device-set XML with the Image->Probe calibration (and clip rectangle).
     #[arg(long)]
-    pub config: PathBuf,
+    pub calibration: PathBuf,
     /// Initial band for the first frame of each sweep: a PNG mask of the frame size (non-zero = band) or a
     /// JSON polygon {"polygon": [[u, v], ...]} in pixels of the MF-oriented frame.
     #[arg(long, conflicts_with = "auto_init")]
@@ -114,7 +114,7 @@ impl SegmentArgs {
     /// Every file this reads: the sequence (with a detached data file), the calibration, the band.
     pub fn input_files(&self) -> Vec<PathBuf> {
         let mut files = io::sequence_files(&self.sequence);
-        files.push(self.config.clone());
+        files.push(self.calibration.clone());
         files.extend(self.init.iter().cloned());
         files
     }
@@ -176,7 +176,7 @@ impl SegmentArgs {
     )> {
         let world = world_choice(&self.world)?;
         let sequence = super::inputs::read_sequence(&self.sequence)?;
-        let calibration = io::read_calibration(&self.config)?;
+        let calibration = io::read_calibration(&self.calibration)?;
         let poses = io::resolve_poses(&sequence, Some(&calibration), world, &self.sequence)?;
         let init = match (&self.init, self.auto_init) {
             (Some(path), false) => InitialBand::load(path, sequence.width, sequence.height)?,
@@ -184,7 +184,7 @@ impl SegmentArgs {
             _ => anyhow::bail!("give the initial band with --init FILE or ask for --auto-init"),
         };
         // After the band: a bad band file is the more specific complaint.
-        super::inputs::check_clip(&calibration, &sequence, &self.config, &self.sequence)?;
+        super::inputs::check_clip(&calibration, &sequence, &self.calibration, &self.sequence)?;
         let progress = BarProgress::new();
         let masks = segment_sequence(
             &sequence,

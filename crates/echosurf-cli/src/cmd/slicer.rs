@@ -25,7 +25,7 @@ pub struct Args {
     pub sequence: Option<PathBuf>,
     /// PLUS device-set configuration XML (probe calibration, clip rectangle).
     #[arg(required_unless_present = "xml")]
-    pub config: Option<PathBuf>,
+    pub calibration: Option<PathBuf>,
     /// Output model (.vtk as Slicer hands it; .ply, .stl, .obj also work).
     #[arg(required_unless_present = "xml")]
     pub output_model: Option<PathBuf>,
@@ -85,8 +85,8 @@ pub fn module_description() -> String {
       <index>0</index>
     </file>
     <file fileExtensions=".xml">
-      <name>config</name>
-      <label>PLUS configuration</label>
+      <name>calibration</name>
+      <label>PLUS calibration</label>
       <description><![CDATA[PLUS device-set configuration XML with the probe calibration (ImageToProbe) and the clip rectangle.]]></description>
       <channel>input</channel>
       <index>1</index>
@@ -281,9 +281,9 @@ struct ExtractCommand {
 /// The `echosurf extract` arguments that a module run stands for.
 fn extract_arguments(args: &Args) -> anyhow::Result<Vec<std::ffi::OsString>> {
     let (Some(sequence), Some(config), Some(model)) =
-        (&args.sequence, &args.config, &args.output_model)
+        (&args.sequence, &args.calibration, &args.output_model)
     else {
-        anyhow::bail!("give the sequence, the configuration and the output model");
+        anyhow::bail!("give the sequence, the calibration and the output model");
     };
     let iso = if args.auto_iso {
         "auto".to_string()
@@ -292,7 +292,7 @@ fn extract_arguments(args: &Args) -> anyhow::Result<Vec<std::ffi::OsString>> {
     };
     let mut out: Vec<std::ffi::OsString> = vec!["extract".into(), sequence.into()];
     for (flag, value) in [
-        ("--config", config.as_os_str().to_owned()),
+        ("--calibration", config.as_os_str().to_owned()),
         ("--out", model.as_os_str().to_owned()),
         ("--iso", iso.into()),
         ("--smoothing", args.smoothing.to_string().into()),
@@ -368,14 +368,14 @@ mod tests {
         let args = Args::try_parse_from_for_test(&["s.mha", "c.xml", "m.vtk", "--autoIso"]);
         let mapped = extract_arguments(&args).unwrap();
         let extract = ExtractCommand::try_parse_from(&mapped).unwrap().args;
-        assert_eq!(extract.iso, "auto");
-        assert_eq!(extract.out, PathBuf::from("m.vtk"));
-        assert_eq!(extract.max_samples, DEFAULT_MAX_SAMPLES);
+        assert_eq!(extract.iso.as_deref(), Some("auto"));
+        assert_eq!(extract.out, Some(PathBuf::from("m.vtk")));
+        assert_eq!(extract.max_samples, Some(DEFAULT_MAX_SAMPLES));
         let args = Args::try_parse_from_for_test(&["s.mha", "c.xml", "m.vtk", "--iso", "72.5"]);
         let extract = ExtractCommand::try_parse_from(extract_arguments(&args).unwrap())
             .unwrap()
             .args;
-        assert_eq!(extract.iso, "72.5");
+        assert_eq!(extract.iso.as_deref(), Some("72.5"));
     }
 
     impl Args {

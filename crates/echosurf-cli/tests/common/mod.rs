@@ -53,3 +53,12 @@ pub fn simulate_small_sphere(
     echosurf_ok(&args);
     (dir.join("sim.mha"), dir.join("sim_config.xml"))
 }
+
+/// Writes `toml` (sections of the `extract --print-config` file) to `dir/name` and returns
+/// `["--config", path]` for `echosurf extract`.
+#[allow(dead_code)]
+pub fn extract_config(dir: &std::path::Path, name: &str, toml: &str) -> [String; 2] {
+    let path = dir.join(name);
+    std::fs::write(&path, toml).unwrap();
+    ["--config".into(), path.to_str().unwrap().into()]
+}

@@ -113,7 +113,7 @@ pub fn summarise(
             notes.push("tracking-only sequence: no images, sweeps follow the probe origin".into());
         } else {
             notes.push(
-                "frame positions need the probe calibration (--config PLUS device-set XML); \
+                "frame positions need the probe calibration (--calibration PLUS device-set XML); \
                  sweeps follow the tracked probe origin and no world bounds are given"
                     .into(),
             );

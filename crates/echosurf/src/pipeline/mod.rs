@@ -27,7 +27,13 @@ use crate::{Error, Result};
 use echo_reach::EchoReach;
 
 mod echo_reach;
+mod options;
 mod voxel_route;
+
+pub use options::{
+    CleanupTuning, ExtractConfig, FitTuning, MethodChoice, OptionError, RidgeTuning,
+    SamplingTuning, SurfaceTuning, Tuning, UserOptions, VoxelTuning,
+};
 
 pub use voxel_route::{VoxelRouteOptions, VoxelRouteReport, smooth_masked_gaussian};
 
@@ -50,7 +56,11 @@ pub enum IsoLevels {
     Levels(Vec<f64>),
 }
 
-/// Everything `extract` needs besides the data. `Default` is what the CLI uses without options.
+/// Everything `extract` needs besides the data, as the pipeline reads it; built from the two tiers of
+/// [`ExtractConfig`] ([`ExtractConfig::to_extract_options`]). The seed, trust distance and memory
+/// budget are the fields here: the pipeline hands them to the fit, the surfacer and the voxel route
+/// (`fit.seed` and `surface.trust_distance_mm` are overwritten). `Default` is what the CLI uses
+/// without options.
 #[derive(Debug, Clone)]
 pub struct ExtractOptions {
     pub method: Method,
@@ -107,33 +117,9 @@ pub struct ExtractOptions {
 }
 
 impl Default for ExtractOptions {
+    /// The defaults of [`ExtractConfig`] (where every default lives) with the automatic first band.
     fn default() -> Self {
-        ExtractOptions {
-            method: Method::Rbf,
-            iso: IsoLevels::Auto,
-            init: InitialBand::Auto,
-            segment: SegmentOptions::default(),
-            reference: ReferenceChoice::Auto,
-            max_samples: 100_000,
-            seed: 1,
-            fit: FitOptions {
-                smoothing: DEFAULT_SMOOTHING_MM,
-                ..FitOptions::default()
-            },
-            surface: SurfaceOptions::default(),
-            trust_distance_mm: None,
-            sample_bin_mm: 0.4,
-            echo_margin_mm: Some(DEFAULT_ECHO_MARGIN_MM),
-            min_echo_frames: DEFAULT_MIN_ECHO_FRAMES,
-            max_echo_distance_mm: DEFAULT_MAX_ECHO_DISTANCE_MM,
-            bridge_gap_mm: DEFAULT_BRIDGE_GAP_MM,
-            trim_rim_rings: 0,
-            sheet: Sheet::Auto,
-            echo_sheet: SheetOptions::default(),
-            weak_echoes: WeakEchoes::default(),
-            min_component_area_mm2: None,
-            memory_budget_bytes: None,
-        }
+        ExtractConfig::default().to_extract_options(InitialBand::Auto)
     }
 }
 
@@ -858,7 +844,11 @@ fn extract_from_prepared(
         .map(|&v| v as f64)
         .collect();
     let (model, fit_report) = meter.stage("fit", || {
-        crate::rbf::fit(positions, &values, &options.fit, progress)
+        let fit_options = FitOptions {
+            seed: options.seed,
+            ..options.fit.clone()
+        };
+        crate::rbf::fit(positions, &values, &fit_options, progress)
     })?;
     if let Some(w) = implausible_fit_warning(&fit_report, &values) {
         warnings.push(w);
@@ -932,7 +922,7 @@ fn extract_from_prepared(
         if mesh.is_empty() && used.pieces_without_echoes > 0 {
             warnings.push(format!(
                 "iso-level {}: every piece of surface ({}) was echoed by fewer than {} frames and removed \
-                 (--min-echo-frames 0 keeps them)",
+                 (tuning.cleanup.min_echo_frames = 0 keeps them)",
                 used.level, used.pieces_without_echoes, used.min_echo_frames
             ));
         } else if mesh.is_empty() {

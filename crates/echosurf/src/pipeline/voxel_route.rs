@@ -46,10 +46,9 @@ pub struct VoxelRouteOptions {
     /// Isotropic grid spacing (mm). `None`: the configuration's `OutputSpacing` if it has one, else the
     /// surfacer resolution (`ExtractOptions::surface.resolution_mm`).
     pub spacing_mm: Option<f64>,
-    /// Sigma of the Gaussian pre-smoothing (mm); 0 = none.
+    /// Sigma of the Gaussian pre-smoothing (mm); 0 = none. The grid's memory budget is
+    /// [`ExtractOptions::memory_budget_bytes`] (`None`: the reconstruction's default).
     pub smoothing_sigma_mm: f64,
-    /// Refuse grids needing more than this (bytes); `None` = the reconstruction's default budget.
-    pub memory_budget_bytes: Option<u64>,
 }
 
 impl Default for VoxelRouteOptions {
@@ -59,7 +58,6 @@ impl Default for VoxelRouteOptions {
         VoxelRouteOptions {
             spacing_mm: None,
             smoothing_sigma_mm: 1.0,
-            memory_budget_bytes: None,
         }
     }
 }
@@ -143,7 +141,7 @@ pub(super) fn extract_voxel(
         }
         None => {}
     }
-    if let Some(b) = route.memory_budget_bytes {
+    if let Some(b) = options.memory_budget_bytes {
         voxel_options.memory_budget_bytes = b;
     }
     voxel_options.extra_bytes_per_voxel = route_bytes_per_voxel(route.smoothing_sigma_mm);

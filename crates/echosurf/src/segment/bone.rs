@@ -5,6 +5,7 @@
 
 /// How bone echoes are found in a column of the smoothed frame (lengths in mm along the beam).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct BoneEchoOptions {
     /// Gaussian smoothing of the frame before the column scan (speckle grain).
     pub smoothing_mm: f64,

@@ -111,6 +111,7 @@ impl Length {
 
 /// The paper's segmentation parameters (defaults = the paper's values) and the extras echosurf adds.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SegmentOptions {
     /// Gaussian smoothing before the gradients (speckle suppression). Not a paper parameter; default
     /// 0.5 mm, about the axial resolution (speckle grain) of a 7 MHz probe, so it scales with the pixel
@@ -333,6 +334,7 @@ impl SegmentOptions {
 /// `layers - 1` further layers offers the column's next candidate beyond the band around the edgels kept
 /// so far, chained under the same floor.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct EdgelChaining {
     pub weak_fraction: f64,
     pub link_rows: usize,

@@ -14,7 +14,7 @@ pub enum Target {
     /// A tracked sequence that reads but cannot be placed in space (`echosurf extract`): NaN/singular
     /// matrices, no valid pose.
     SequenceForExtract,
-    /// A PLUS device-set XML (`echosurf reconstruct --config`).
+    /// A PLUS device-set XML (`echosurf reconstruct --calibration`).
     Config,
     /// An initial band (`echosurf extract --init`).
     InitialBand,
