@@ -830,7 +830,7 @@ pub fn extract(
     if let Some(budget) = options.memory_budget_bytes {
         crate::budget::check_extract_budget(sequence, budget)?;
     }
-    let mut meter = StageMeter::new();
+    let mut meter = StageMeter::new(progress);
     let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
     extract_from_prepared(sequence, calibration, options, meter, prepared, progress)
 }
@@ -852,7 +852,7 @@ pub fn extract_with_masks(
             sequence.frames.len()
         )));
     }
-    let mut meter = StageMeter::new();
+    let mut meter = StageMeter::new(progress);
     let poses = place_frames(sequence, calibration, options, &mut meter)?;
     let prepared =
         prepare_samples_from_masks(sequence, calibration, options, &mut meter, poses, masks)?;
