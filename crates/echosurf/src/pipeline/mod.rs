@@ -565,7 +565,7 @@ pub fn prepare_samples_from_masks(
             bin_px,
             bone_sweep: masks.bone_sweep,
         };
-        crate::budget::check_extract_budget_after_segmentation(counts, options, budget)?;
+        crate::budget::check_extract_budget_after_segmentation(counts, fit_plan(options), budget)?;
     }
     // A bone band is fitted against each echo's own contrast (see `segment::bone`).
     let normalised = masks.bone_sweep.then(|| {
@@ -624,6 +624,14 @@ pub fn prepare_samples_from_masks(
         counts,
         pixel_size_mm,
     })
+}
+
+/// What the memory budget reads of `options` (see [`crate::budget::FitPlan`]).
+pub fn fit_plan(options: &ExtractOptions) -> crate::budget::FitPlan<'_> {
+    crate::budget::FitPlan {
+        max_samples: options.max_samples,
+        fit: &options.fit,
+    }
 }
 
 /// Block size in pixels for [`ExtractOptions::sample_bin_mm`]: the nearest whole number of pixels along
