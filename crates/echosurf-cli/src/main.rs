@@ -4,8 +4,10 @@
 #[macro_use]
 mod stdout;
 mod cmd;
+mod memory;
 mod oom;
 mod progress;
+mod temp_files;
 
 #[global_allocator]
 static ALLOCATOR: oom::CleanOutOfMemory = oom::CleanOutOfMemory;
@@ -83,7 +85,7 @@ pub(crate) fn error_message(error: &anyhow::Error) -> String {
 fn memory_report_line() -> String {
     let mb = |b: u64| format!("{:.1} MB", b as f64 / 1e6);
     let estimate = echosurf::budget::largest_estimate_bytes();
-    let peak = echosurf::resources::lifetime_peak_rss_bytes();
+    let peak = memory::lifetime_peak_rss_bytes();
     let text = |b: Option<u64>| b.map(mb).unwrap_or_else(|| "none".into());
     let ratio = match (estimate, peak) {
         (Some(e), Some(p)) => format!(" (peak / estimate {:.2})", p as f64 / e as f64),
@@ -103,13 +105,14 @@ fn main() -> ExitCode {
     // Ctrl-C, SIGTERM and SIGHUP (the `termination` feature of ctrlc): remove the unfinished hidden
     // temporary outputs, so an interrupted run leaves neither a partial file nor litter. Finished
     // outputs were renamed into place whole and stay.
+    temp_files::install();
     let _ = ctrlc::set_handler(|| {
         // A live session stops on the first Ctrl-C and writes what it recorded.
         if echosurf_live::client::request_stop() {
             eprintln!("\nstopping: writing the recorded frames (Ctrl-C again to quit at once)");
             return;
         }
-        let removed = echosurf::io::atomic::remove_in_flight_temp_files();
+        let removed = temp_files::remove_in_flight();
         eprintln!(
             "\ninterrupted: no output was left half-written ({removed} unfinished file(s) removed)"
         );

@@ -47,7 +47,7 @@ fn failed(layout: Layout) -> *mut u8 {
           exhausted); a smaller --memory-budget refuses such runs before they start\n",
     );
     drop(err);
-    echosurf::io::atomic::try_remove_in_flight_temp_files();
+    crate::temp_files::try_remove_in_flight();
     std::process::exit(1);
 }
 

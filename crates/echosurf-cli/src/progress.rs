@@ -2,6 +2,7 @@
 
 use std::sync::Mutex;
 
+use echosurf::progress::Progress;
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Draws one bar per stage on stderr; silent when stderr is not a terminal (CI, pipes).
@@ -17,7 +18,7 @@ impl BarProgress {
     }
 }
 
-impl echosurf::progress::Progress for BarProgress {
+impl Progress for BarProgress {
     fn start(&self, stage: &str, total: u64) {
         let bar = if total > 0 {
             ProgressBar::new(total)
@@ -52,5 +53,13 @@ impl echosurf::progress::Progress for BarProgress {
         {
             bar.finish_and_clear();
         }
+    }
+
+    fn stage_started(&self, stage: &str) -> bool {
+        crate::memory::StageMemory.stage_started(stage)
+    }
+
+    fn stage_peak_rss_bytes(&self, stage: &str) -> Option<u64> {
+        crate::memory::StageMemory.stage_peak_rss_bytes(stage)
     }
 }

@@ -16,7 +16,7 @@ use echosurf::surface::{SurfaceOptions, extract_surfaces_with_stats};
 fn surface_duck(c: &mut Criterion) {
     let sim = simulate(&SimulationOptions::default(), &NoProgress).expect("simulate duck");
     let options = ExtractOptions::default();
-    let mut meter = StageMeter::new();
+    let mut meter = StageMeter::new(&NoProgress);
     let prepared = prepare_samples(
         &sim.sequence,
         Some(&sim.calibration_written),

@@ -7,7 +7,6 @@
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use crate::io::TrackedSequence;
-use crate::pipeline::ExtractOptions;
 use crate::rbf::SolverChoice;
 use crate::{Error, Result};
 
@@ -163,11 +162,20 @@ pub struct SegmentedCounts {
     pub bone_sweep: bool,
 }
 
+/// What the RBF route's budget reads of its options: the sample cap and the fit's options (built by
+/// `pipeline::fit_plan`, so this module does not depend on the pipeline's option struct).
+#[derive(Debug, Clone, Copy)]
+pub struct FitPlan<'a> {
+    /// At most this many samples are fitted.
+    pub max_samples: usize,
+    pub fit: &'a crate::rbf::FitOptions,
+}
+
 /// Estimates the RBF route's peak once the bands are segmented: the samples from the kept pixels (one
 /// per bin), the fit of at most `--max-samples` of them with the solver `rbf::fit` will choose.
 pub fn estimate_extract_memory(
     counts: SegmentedCounts,
-    options: &ExtractOptions,
+    options: FitPlan<'_>,
 ) -> ExtractMemoryEstimate {
     let bin_area = (counts.bin_px[0].max(1) as u64).saturating_mul(counts.bin_px[1].max(1) as u64);
     let binned = counts.kept_pixels.div_ceil(bin_area);
@@ -185,7 +193,7 @@ pub fn estimate_extract_memory(
             0
         },
         samples: binned.saturating_mul(SAMPLE_BYTES).saturating_add(thinning),
-        fit: fit_bytes(fitted, &options.fit),
+        fit: fit_bytes(fitted, options.fit),
     }
 }
 
@@ -193,7 +201,7 @@ pub fn estimate_extract_memory(
 /// when the estimate exceeds `budget_bytes`, naming the parts and a `--max-samples` that would fit.
 pub fn check_extract_budget_after_segmentation(
     counts: SegmentedCounts,
-    options: &ExtractOptions,
+    options: FitPlan<'_>,
     budget_bytes: u64,
 ) -> Result<()> {
     let e = estimate_extract_memory(counts, options);
@@ -212,7 +220,7 @@ pub fn check_extract_budget_after_segmentation(
             let (mut lo, mut hi) = (0u64, options.max_samples as u64);
             while lo < hi {
                 let mid = (lo + hi).div_ceil(2);
-                if fit_bytes(mid, &options.fit) <= room {
+                if fit_bytes(mid, options.fit) <= room {
                     lo = mid;
                 } else {
                     hi = mid - 1;
@@ -369,23 +377,24 @@ mod tests {
 
     #[test]
     fn kept_pixels_are_counted_once_per_bin() {
-        let options = ExtractOptions::default();
+        let extract = crate::pipeline::ExtractOptions::default();
+        let options = crate::pipeline::fit_plan(&extract);
         let counts = SegmentedCounts {
             frame_pixels: 400,
             kept_pixels: 400,
             bin_px: [2, 2],
             bone_sweep: false,
         };
-        let e = estimate_extract_memory(counts, &options);
+        let e = estimate_extract_memory(counts, options);
         assert_eq!(e.samples, 100 * SAMPLE_BYTES);
-        assert_eq!(e.fit, fit_bytes(100, &options.fit));
+        assert_eq!(e.fit, fit_bytes(100, options.fit));
         assert_eq!(e.normalised_frames, 0);
         let bone = estimate_extract_memory(
             SegmentedCounts {
                 bone_sweep: true,
                 ..counts
             },
-            &options,
+            options,
         );
         assert_eq!(bone.normalised_frames, 400);
     }

@@ -8,6 +8,17 @@ pub trait Progress: Sync {
     fn advance(&self, done: u64);
     /// The current stage is finished.
     fn finish(&self);
+    /// A measured pipeline stage (`poses`, `segment`, `samples`, `fit`, ...) starts. Returns true when
+    /// the caller measures this stage's peak memory alone (the CLI resets the process's high-water
+    /// mark here); the library itself measures nothing process-wide.
+    fn stage_started(&self, _stage: &str) -> bool {
+        false
+    }
+    /// The measured stage `stage` ended: the peak resident memory (bytes) the caller measured for it
+    /// (or for the process so far, where [`Progress::stage_started`] returned false), if it measures.
+    fn stage_peak_rss_bytes(&self, _stage: &str) -> Option<u64> {
+        None
+    }
 }
 
 /// Progress sink that discards everything.

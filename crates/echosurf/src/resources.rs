@@ -1,16 +1,15 @@
-//! Time and memory accounting per pipeline stage, for `--report` and the benchmarks.
+//! Time accounting per pipeline stage (for `--report` and the benchmarks), fallible allocation, and
+//! the resident size the memory budgets start from.
 //!
-//! Peak memory is the process's resident-set high-water mark (`VmHWM` in `/proc/self/status`). Linux lets
-//! a process reset that mark (`echo 5 > /proc/self/clear_refs`), which gives a true per-stage peak; where
-//! that is unavailable the lifetime peak is reported instead and flagged as such.
+//! Peak memory per stage is measured by the caller, not here: it needs process-wide state (Linux's
+//! resettable high-water mark), which belongs to the application. The library announces each stage
+//! through [`Progress::stage_started`] and records what the caller measured
+//! (docs/decisions/0031-library-state.md).
 
 use std::cell::Cell;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
-/// The highest `VmHWM` seen before any [`reset_peak_rss`] (bytes), so the lifetime peak survives the
-/// per-stage resets.
-static PEAK_BEFORE_RESETS_BYTES: AtomicU64 = AtomicU64::new(0);
+use crate::progress::{NoProgress, Progress};
 
 thread_local! {
     /// How many [`fallibly`] calls this thread is inside.
@@ -46,11 +45,6 @@ pub fn try_zeroed_vec<T: Clone + Default>(n: usize, what: &str) -> crate::Result
     Ok(v)
 }
 
-/// Resident-set high-water mark of this process in bytes, if the platform reports it.
-pub fn peak_rss_bytes() -> Option<u64> {
-    read_status_kib("VmHWM:").map(|k| k * 1024)
-}
-
 /// Current resident set size in bytes, if the platform reports it.
 pub fn current_rss_bytes() -> Option<u64> {
     read_status_kib("VmRSS:").map(|k| k * 1024)
@@ -67,25 +61,6 @@ fn read_status_kib(key: &str) -> Option<u64> {
         .ok()
 }
 
-/// Resets the high-water mark to the current RSS; false where the platform does not allow it. The
-/// mark before the reset is kept for [`lifetime_peak_rss_bytes`].
-pub fn reset_peak_rss() -> bool {
-    if let Some(peak) = peak_rss_bytes() {
-        PEAK_BEFORE_RESETS_BYTES.fetch_max(peak, Ordering::Relaxed);
-    }
-    std::fs::write("/proc/self/clear_refs", b"5").is_ok()
-}
-
-/// Resident-set high-water mark over the whole process so far (bytes), per-stage resets included; a
-/// reset lowers `VmHWM` and with it what `getrusage` and `/usr/bin/time` report.
-pub fn lifetime_peak_rss_bytes() -> Option<u64> {
-    let before = PEAK_BEFORE_RESETS_BYTES.load(Ordering::Relaxed);
-    match peak_rss_bytes() {
-        Some(now) => Some(now.max(before)),
-        None => (before > 0).then_some(before),
-    }
-}
-
 /// Wall time and peak memory of one stage.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct StageUsage {
@@ -97,26 +72,46 @@ pub struct StageUsage {
     pub peak_is_per_stage: bool,
 }
 
-/// Measures consecutive stages: call [`StageMeter::stage`] around each one.
-#[derive(Debug, Default)]
-pub struct StageMeter {
+/// Measures consecutive stages: call [`StageMeter::stage`] around each one. The observer is told when
+/// each stage starts and ends and may report its peak memory.
+pub struct StageMeter<'a> {
     pub stages: Vec<StageUsage>,
+    observer: &'a dyn Progress,
 }
 
-impl StageMeter {
-    pub fn new() -> Self {
-        Self::default()
+impl std::fmt::Debug for StageMeter<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StageMeter")
+            .field("stages", &self.stages)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Default for StageMeter<'_> {
+    fn default() -> Self {
+        Self::new(&NoProgress)
+    }
+}
+
+impl<'a> StageMeter<'a> {
+    /// A meter announcing its stages to `observer` (the caller's progress sink).
+    pub fn new(observer: &'a dyn Progress) -> Self {
+        Self {
+            stages: Vec::new(),
+            observer,
+        }
     }
 
-    /// Runs `work` as the stage `name`, recording its time and peak memory.
+    /// Runs `work` as the stage `name`, recording its time and the peak memory the observer measured.
     pub fn stage<T>(&mut self, name: &str, work: impl FnOnce() -> T) -> T {
-        let per_stage = reset_peak_rss();
+        let per_stage = self.observer.stage_started(name);
         let start = Instant::now();
         let out = work();
+        let seconds = start.elapsed().as_secs_f64();
         self.stages.push(StageUsage {
             stage: name.to_string(),
-            seconds: start.elapsed().as_secs_f64(),
-            peak_rss_bytes: peak_rss_bytes(),
+            seconds,
+            peak_rss_bytes: self.observer.stage_peak_rss_bytes(name),
             peak_is_per_stage: per_stage,
         });
         out
@@ -146,29 +141,42 @@ mod tests {
         assert!(!allocation_is_fallible());
     }
 
+    /// Counts the announcements and reports a made-up peak per stage.
+    #[derive(Default)]
+    struct Recorder {
+        started: std::sync::Mutex<Vec<String>>,
+    }
+
+    impl Progress for Recorder {
+        fn start(&self, _stage: &str, _total: u64) {}
+        fn advance(&self, _done: u64) {}
+        fn finish(&self) {}
+        fn stage_started(&self, stage: &str) -> bool {
+            self.started.lock().unwrap().push(stage.into());
+            true
+        }
+        fn stage_peak_rss_bytes(&self, stage: &str) -> Option<u64> {
+            Some(1000 * stage.len() as u64)
+        }
+    }
+
     #[test]
-    fn stage_meter_records_every_stage_in_order() {
-        let mut meter = StageMeter::new();
-        let v = meter.stage("alloc", || {
-            let big = vec![1u8; 32 << 20];
-            big.iter().map(|&b| b as u64).sum::<u64>()
-        });
-        assert_eq!(v, 32 << 20);
+    fn stage_meter_records_every_stage_in_order_with_the_observers_peaks() {
+        let recorder = Recorder::default();
+        let mut meter = StageMeter::new(&recorder);
+        let v = meter.stage("alloc", || 7);
+        assert_eq!(v, 7);
         meter.stage("idle", || ());
-        assert_eq!(meter.stages.len(), 2);
-        assert_eq!(meter.stages[0].stage, "alloc");
-        if let Some(lifetime) = lifetime_peak_rss_bytes() {
-            assert!(
-                lifetime >= meter.peak_rss_bytes().unwrap_or(0),
-                "{lifetime}"
-            );
-        }
-        if let (Some(alloc_peak), true) = (
-            meter.stages[0].peak_rss_bytes,
-            meter.stages[0].peak_is_per_stage,
-        ) {
-            // The 32 MiB buffer was resident during the first stage.
-            assert!(alloc_peak >= 32 << 20, "{alloc_peak}");
-        }
+        assert_eq!(*recorder.started.lock().unwrap(), ["alloc", "idle"]);
+        let names: Vec<_> = meter.stages.iter().map(|s| s.stage.as_str()).collect();
+        assert_eq!(names, ["alloc", "idle"]);
+        assert_eq!(meter.stages[0].peak_rss_bytes, Some(5000));
+        assert!(meter.stages[0].peak_is_per_stage);
+        assert_eq!(meter.peak_rss_bytes(), Some(5000));
+        // Without an observer that measures, no peak is claimed.
+        let mut silent = StageMeter::default();
+        silent.stage("alloc", || ());
+        assert_eq!(silent.stages[0].peak_rss_bytes, None);
+        assert!(!silent.stages[0].peak_is_per_stage);
     }
 }

@@ -11,7 +11,6 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use anyhow::Context;
 use clap::Parser;
-use echosurf::progress::NoProgress;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -230,7 +229,7 @@ fn run_job(dir: &Path, job: &Job) -> anyhow::Result<Outcome> {
         );
     }
     let space = args.space.space;
-    let output = super::extract::run_with(args, &NoProgress)?;
+    let output = super::extract::run_with(args, &crate::memory::StageMemory)?;
     let mut report = super::space::with_coordinates(
         &output.report,
         &output.report.parameters.world_frame,

@@ -119,7 +119,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let case = bench::simulated_case(phantom.clone(), level, args.quick, args.seed)
                 .with_context(|| format!("simulating {} / {}", phantom.name(), level.name()))?;
             eprintln!("bench: running both routes on {} ...", case.name);
-            results.extend(bench::run_case(&case, &options)?);
+            results.extend(bench::run_case(
+                &case,
+                &options,
+                &crate::memory::StageMemory,
+            )?);
         }
     }
     for spec in cases {
@@ -132,7 +136,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let truth_mesh = io::read_mesh(truth.as_ref())?;
         let case = bench::user_case(seq.to_string(), sequence, calibration, truth_mesh)?;
         eprintln!("bench: running both routes on {} ...", case.name);
-        results.extend(bench::run_case(&case, &options)?);
+        results.extend(bench::run_case(
+            &case,
+            &options,
+            &crate::memory::StageMemory,
+        )?);
     }
 
     let fit_max = args

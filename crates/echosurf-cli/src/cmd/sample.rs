@@ -63,12 +63,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         echo_margin_mm: echo_margin(args.echo_margin)?,
         ..ExtractOptions::default()
     };
+    let progress = BarProgress::new();
     let prepared = pipeline::prepare_samples(
         &sequence,
         Some(&calibration),
         &options,
-        &mut StageMeter::new(),
-        &BarProgress::new(),
+        &mut StageMeter::new(&progress),
+        &progress,
     )
     .with_context(|| format!("sampling {}", seg.sequence.display()))?;
     for w in &prepared.masks.warnings {

@@ -20,7 +20,7 @@ use crate::io::{Calibration, ClipRect, TrackedSequence, resolve_poses};
 use crate::mesh::Mesh;
 use crate::metrics::{CompareOptions, compare_meshes, triangle_map};
 use crate::pipeline::{ExtractOptions, IsoLevels, Method, Sheet, VoxelRouteOptions, extract};
-use crate::progress::NoProgress;
+use crate::progress::{NoProgress, Progress};
 use crate::simulate::{PhantomKind, SimulationOptions, TrackingErrors, simulate};
 use crate::{Error, Result};
 
@@ -582,8 +582,13 @@ pub const ROUTES: [(&str, Sheet); 3] = [
     ("voxel", Sheet::Iso),
 ];
 
-/// Runs every route on a case and scores them.
-pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteResult>> {
+/// Runs every route on `case` and scores them; `observer` hears each pipeline stage (and measures its peak memory,
+/// if it does: the CLI's does).
+pub fn run_case(
+    case: &BenchCase,
+    options: &BenchOptions,
+    observer: &dyn Progress,
+) -> Result<Vec<RouteResult>> {
     let plane_distance = median_spacing(&case.true_image_to_world)
         .unwrap_or(1.5)
         .max(1.5);
@@ -652,7 +657,7 @@ pub fn run_case(case: &BenchCase, options: &BenchOptions) -> Result<Vec<RouteRes
             &case.sequence,
             Some(&case.calibration),
             &extract_options,
-            &NoProgress,
+            observer,
         );
         let seconds = start.elapsed().as_secs_f64();
         let mut result = RouteResult {

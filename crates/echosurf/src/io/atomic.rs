@@ -1,25 +1,36 @@
 //! Atomic output: data goes to a hidden temporary file in the destination folder, which is renamed over
 //! the destination only once it is complete and flushed. A crash or Ctrl-C leaves the old file (or none).
 //!
-//! Temporary files in flight are registered so a Ctrl-C handler can remove them
-//! ([`remove_in_flight_temp_files`]); after a SIGKILL nothing can run, so the next write into the same
-//! folder removes leftovers whose process is gone ([`remove_stale_temp_files`]).
+//! An application that handles Ctrl-C installs a [`TempFileRegistry`] to learn of the temporary files
+//! in flight and remove them (the CLI does); after a SIGKILL nothing can run, so the next write into the
+//! same folder removes leftovers whose process is gone ([`remove_stale_temp_files`]).
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
-use std::sync::{Mutex, MutexGuard};
+use std::sync::OnceLock;
 
 use crate::{Error, Result};
 
-/// Temporary files being written by this process. Renames happen under this lock, so a signal handler
-/// holding it sees every temporary file either still in flight or already renamed into place.
-static IN_FLIGHT: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+/// Learns of the temporary files [`write_atomic`] creates, so an application's Ctrl-C or
+/// out-of-memory handler can remove the unfinished ones. The application owns the registry (its paths,
+/// its lock, its handler) and installs it once with [`set_temp_file_registry`].
+pub trait TempFileRegistry: Sync {
+    /// `tmp` is about to be created.
+    fn add(&self, tmp: &Path);
+    /// `tmp` is finished with: run `settle` (its rename into place, or its removal) and forget `tmp`,
+    /// as one step for a handler that removes the registered files (so it sees every temporary file
+    /// either still in flight or already renamed).
+    fn settle(&self, tmp: &Path, settle: &mut dyn FnMut());
+}
 
-fn in_flight() -> MutexGuard<'static, Vec<PathBuf>> {
-    IN_FLIGHT
-        .lock()
-        .unwrap_or_else(|poisoned| poisoned.into_inner())
+/// The registry the application installed, if any: set once by the application, never by the
+/// library.
+static REGISTRY: OnceLock<&'static dyn TempFileRegistry> = OnceLock::new();
+
+/// Installs the application's registry of temporary files; false if one was installed already.
+pub fn set_temp_file_registry(registry: &'static dyn TempFileRegistry) -> bool {
+    REGISTRY.set(registry).is_ok()
 }
 
 const TEMP_MARKER: &str = ".echosurf-tmp-";
@@ -126,8 +137,11 @@ where
     };
     let tmp = temp_path(&target);
     remove_stale_temp_files(tmp.parent().unwrap_or(Path::new(".")));
-    in_flight().push(tmp.clone());
-    let result = (|| -> std::io::Result<()> {
+    let registry = REGISTRY.get();
+    if let Some(registry) = registry {
+        registry.add(&tmp);
+    }
+    let mut written = Some((|| -> std::io::Result<()> {
         let file = File::create(&tmp)?;
         let mut writer = BufWriter::with_capacity(1 << 20, file);
         fill(&mut writer)?;
@@ -135,19 +149,26 @@ where
         let file = writer.into_inner().map_err(|e| e.into_error())?;
         file.sync_all()?;
         Ok(())
-    })();
-    let mut registry = in_flight();
-    registry.retain(|p| p != &tmp);
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(Error::io(path, e));
+    })());
+    let mut outcome = Ok(());
+    let mut settle = || {
+        outcome = match written.take() {
+            Some(Ok(())) => std::fs::rename(&tmp, &target).map_err(|e| {
+                let _ = std::fs::remove_file(&tmp);
+                Error::io(path, e)
+            }),
+            Some(Err(e)) => {
+                let _ = std::fs::remove_file(&tmp);
+                Err(Error::io(path, e))
+            }
+            None => Ok(()),
+        };
+    };
+    match registry {
+        Some(registry) => registry.settle(&tmp, &mut settle),
+        None => settle(),
     }
-    let renamed = std::fs::rename(&tmp, &target).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::io(path, e)
-    });
-    drop(registry);
-    renamed
+    outcome
 }
 
 /// Writes straight into a device or stream (no temporary file: it cannot be replaced). Appends, so
@@ -163,41 +184,6 @@ where
         writer.flush()
     })();
     result.map_err(|e| Error::io(path, e))
-}
-
-/// Removes this process's unfinished temporary files and returns how many there were. For a Ctrl-C
-/// handler: call it, then exit without returning (the lock stays held so no rename can follow).
-pub fn remove_in_flight_temp_files() -> usize {
-    let registry = in_flight();
-    for tmp in registry.iter() {
-        let _ = std::fs::remove_file(tmp);
-    }
-    let n = registry.len();
-    // Keep the guard alive until the process exits: a writer thread must not rename afterwards.
-    std::mem::forget(registry);
-    n
-}
-
-/// [`remove_in_flight_temp_files`] for a process ending from inside its allocator: waits at most about
-/// a second for the registry, which the failing thread itself may hold, and then gives up (`None`).
-pub fn try_remove_in_flight_temp_files() -> Option<usize> {
-    for _ in 0..100 {
-        let registry = match IN_FLIGHT.try_lock() {
-            Ok(guard) => guard,
-            Err(std::sync::TryLockError::Poisoned(poisoned)) => poisoned.into_inner(),
-            Err(std::sync::TryLockError::WouldBlock) => {
-                std::thread::sleep(std::time::Duration::from_millis(10));
-                continue;
-            }
-        };
-        for tmp in registry.iter() {
-            let _ = std::fs::remove_file(tmp);
-        }
-        let n = registry.len();
-        std::mem::forget(registry);
-        return Some(n);
-    }
-    None
 }
 
 /// Removes `.NAME.echosurf-tmp-PID` files in `dir` left by echosurf processes that no longer run (killed
@@ -329,15 +315,6 @@ mod tests {
         assert!(mine.exists(), "a live process's temp file must stay");
         assert!(unrelated.exists());
         assert!(dir.path().join("out.bin").exists());
-    }
-
-    #[test]
-    fn registry_is_empty_after_writes() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("a.bin");
-        write_bytes_atomic(&path, b"a").unwrap();
-        let tmp = temp_path(&path);
-        assert!(!in_flight().contains(&tmp));
     }
 
     #[cfg(unix)]

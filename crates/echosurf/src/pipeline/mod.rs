@@ -515,7 +515,7 @@ pub fn prepare_samples_from_masks(
             bin_px,
             bone_sweep: masks.bone_sweep,
         };
-        crate::budget::check_extract_budget_after_segmentation(counts, options, budget)?;
+        crate::budget::check_extract_budget_after_segmentation(counts, fit_plan(options), budget)?;
     }
     // A bone band is fitted against each echo's own contrast (see `segment::bone`).
     let normalised = masks.bone_sweep.then(|| {
@@ -574,6 +574,14 @@ pub fn prepare_samples_from_masks(
         counts,
         pixel_size_mm,
     })
+}
+
+/// What the memory budget reads of `options` (see [`crate::budget::FitPlan`]).
+pub fn fit_plan(options: &ExtractOptions) -> crate::budget::FitPlan<'_> {
+    crate::budget::FitPlan {
+        max_samples: options.max_samples,
+        fit: &options.fit,
+    }
 }
 
 /// Block size in pixels for [`ExtractOptions::sample_bin_mm`]: the nearest whole number of pixels along
@@ -780,7 +788,7 @@ pub fn extract(
     if let Some(budget) = options.memory_budget_bytes {
         crate::budget::check_extract_budget(sequence, budget)?;
     }
-    let mut meter = StageMeter::new();
+    let mut meter = StageMeter::new(progress);
     let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
     extract_from_prepared(sequence, calibration, options, meter, prepared, progress)
 }
@@ -802,7 +810,7 @@ pub fn extract_with_masks(
             sequence.frames.len()
         )));
     }
-    let mut meter = StageMeter::new();
+    let mut meter = StageMeter::new(progress);
     let poses = place_frames(sequence, calibration, options, &mut meter)?;
     let prepared =
         prepare_samples_from_masks(sequence, calibration, options, &mut meter, poses, masks)?;

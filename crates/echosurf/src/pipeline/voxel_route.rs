@@ -110,7 +110,7 @@ pub(super) fn extract_voxel(
             "voxel spacing must be a positive number of mm, got {s}"
         )));
     }
-    let mut meter = StageMeter::new();
+    let mut meter = StageMeter::new(progress);
     let mut warnings = Vec::new();
 
     let requested = match &options.iso {

@@ -14,10 +14,10 @@
 //! with w N / |C|.
 
 use faer::Mat;
-use faer::linalg::solvers::{PartialPivLu, Solve};
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::direct::SequentialLu;
 use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams};
 use super::trend::TrendBasis;
 use crate::{Error, Result};
@@ -34,7 +34,7 @@ const COARSE_PRODUCT_NODES: usize = 4;
 pub(crate) struct CoarseLevel {
     /// Fine-tree positions of the coarse points.
     pub index: Vec<u32>,
-    lu: PartialPivLu<f64>,
+    lu: SequentialLu,
     rank: usize,
     smoothing: f64,
     treecode: Treecode,
@@ -70,7 +70,7 @@ impl CoarseLevel {
                 0.0
             }
         });
-        let lu = sequential(|| a.partial_piv_lu());
+        let lu = SequentialLu::new(a);
         let treecode = Treecode::new(
             &pts,
             TreecodeParams {
@@ -112,7 +112,7 @@ impl CoarseLevel {
                 0.0
             }
         });
-        sequential(|| self.lu.solve_in_place(rhs.as_mut()));
+        self.lu.solve_in_place(rhs.as_mut());
         (0..m).map(|i| rhs[(i, 0)]).collect()
     }
 
@@ -132,16 +132,6 @@ impl CoarseLevel {
         let size = self.index.len() + self.rank;
         size * size * 8 + self.treecode.memory_bytes() + self.lists.memory_bytes() + size * 4
     }
-}
-
-/// Runs `f` with faer's parallelism off: its blocked kernels split work by thread count, which changes
-/// rounding, and fits must be bit-identical on any number of threads.
-fn sequential<T>(f: impl FnOnce() -> T) -> T {
-    let previous = faer::get_global_parallelism();
-    faer::set_global_parallelism(faer::Par::Seq);
-    let out = f();
-    faer::set_global_parallelism(previous);
-    out
 }
 
 /// At most `max_points` (and more than a quarter of that) well-spread samples (fine-tree positions): a

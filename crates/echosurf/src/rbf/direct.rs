@@ -1,8 +1,10 @@
 //! Dense solvers: the global reference solve (faer LU of the saddle system) and the small local solves
 //! used by the Schwarz preconditioner (own LU, sequential and therefore deterministic inside rayon).
 
-use faer::Mat;
-use faer::linalg::solvers::Solve;
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::lu::partial_pivoting::{factor, solve};
+use faer::perm::PermRef;
+use faer::{Mat, MatMut, Par};
 use glam::DVec3;
 
 use super::trend::TrendBasis;
@@ -31,14 +33,7 @@ pub(crate) fn solve_dense(
         }
     });
     let mut rhs = Mat::<f64>::from_fn(size, 1, |i, _| if i < n { values[i] } else { 0.0 });
-    // faer's blocked LU splits its work by thread count when it runs in parallel, which changes the
-    // rounding of the result: run it sequentially so a fit is bit-identical on 1 or many threads (the
-    // dense path is only used up to a few thousand points, where this costs well under a second).
-    let previous = faer::get_global_parallelism();
-    faer::set_global_parallelism(faer::Par::Seq);
-    let lu = m.partial_piv_lu();
-    lu.solve_in_place(rhs.as_mut());
-    faer::set_global_parallelism(previous);
+    SequentialLu::new(m).solve_in_place(rhs.as_mut());
     let solution: Vec<f64> = (0..size).map(|i| rhs[(i, 0)]).collect();
     if solution.iter().any(|v| !v.is_finite()) {
         return Err(Error::Numerical(format!(
@@ -47,6 +42,66 @@ pub(crate) fn solve_dense(
         )));
     }
     Ok((solution[..n].to_vec(), solution[n..].to_vec()))
+}
+
+/// LU factors with partial pivoting of a square matrix, computed and applied by faer's kernels with
+/// `Par::Seq` passed explicitly: parallel kernels split work by thread count, which changes rounding,
+/// and a fit must be bit-identical on any number of threads (and must not touch faer's global setting,
+/// which another fit in the same process may be using).
+pub(crate) struct SequentialLu {
+    /// L (unit diagonal, strictly below it) and U (on and above the diagonal) in one matrix.
+    factors: Mat<f64>,
+    row_perm: Vec<usize>,
+    row_perm_inverse: Vec<usize>,
+}
+
+impl SequentialLu {
+    /// Factors the square matrix `a` in place.
+    pub fn new(mut a: Mat<f64>) -> Self {
+        let n = a.nrows();
+        assert_eq!(n, a.ncols(), "LU of a non-square matrix");
+        let mut row_perm = vec![0usize; n];
+        let mut row_perm_inverse = vec![0usize; n];
+        let params = Default::default();
+        let mut buffer = MemBuffer::new(factor::lu_in_place_scratch::<usize, f64>(
+            n,
+            n,
+            Par::Seq,
+            params,
+        ));
+        factor::lu_in_place(
+            a.as_mut(),
+            &mut row_perm,
+            &mut row_perm_inverse,
+            Par::Seq,
+            MemStack::new(&mut buffer),
+            params,
+        );
+        Self {
+            factors: a,
+            row_perm,
+            row_perm_inverse,
+        }
+    }
+
+    /// Replaces `rhs` (n rows) by the solution of `A x = rhs`.
+    pub fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
+        let n = self.factors.nrows();
+        let perm = PermRef::new_checked(&self.row_perm, &self.row_perm_inverse, n);
+        let mut buffer = MemBuffer::new(solve::solve_in_place_scratch::<usize, f64>(
+            n,
+            rhs.ncols(),
+            Par::Seq,
+        ));
+        solve::solve_in_place(
+            self.factors.as_ref(),
+            self.factors.as_ref(),
+            perm,
+            rhs,
+            Par::Seq,
+            MemStack::new(&mut buffer),
+        );
+    }
 }
 
 /// In-place LU with partial pivoting of the row-major `n x n` matrix `a`, then solves for the row-major

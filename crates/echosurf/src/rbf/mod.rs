@@ -593,6 +593,8 @@ fn greedy_reduction(
 }
 
 #[cfg(test)]
+mod concurrency_tests;
+#[cfg(test)]
 mod contract_tests;
 #[cfg(test)]
 mod pu_tests;

@@ -6,7 +6,6 @@ use std::collections::HashMap;
 
 use glam::DVec3;
 
-use super::phantom::{Phantom, SurfaceFn};
 use crate::mesh::Mesh;
 
 /// Which part of a triangle the closest point lies on.
@@ -262,8 +261,10 @@ fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> (DVec3, 
     (a + ab * v + ac * w, Feature::Face)
 }
 
-impl Phantom for MeshSdf {
-    fn distance_and_gradient(&self, p: DVec3) -> (f64, DVec3) {
+// `simulate::phantom` implements its `Phantom` trait over these, so this module does not depend on it.
+impl MeshSdf {
+    /// Signed distance (mm, negative inside) to the mesh at `p` and its gradient.
+    pub(crate) fn signed_distance_and_gradient(&self, p: DVec3) -> (f64, DVec3) {
         let (f, q, feature, d2) = self.nearest(p);
         let normal = match feature {
             Feature::Face => self.face_normals[f],
@@ -281,28 +282,27 @@ impl Phantom for MeshSdf {
         (sign * d, g)
     }
 
-    fn bounds(&self) -> (DVec3, DVec3) {
+    /// Bounding box (min, max corners, mm) of the mesh.
+    pub(crate) fn bounding_box(&self) -> (DVec3, DVec3) {
         self.bounds
     }
 
-    fn surfaces(&self) -> Vec<(String, &SurfaceFn)> {
-        Vec::new()
-    }
-
-    fn exact_meshes(&self) -> Option<Vec<(String, Mesh)>> {
+    /// The mesh itself with its vertex normals: the phantom's exact truth.
+    pub(crate) fn exact_mesh(&self) -> Mesh {
         let mut mesh = self.mesh.clone();
         mesh.normals = self
             .vertex_normals
             .iter()
             .map(|n| n.normalize_or_zero())
             .collect();
-        Some(vec![("mesh".into(), mesh)])
+        mesh
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::simulate::phantom::Phantom;
 
     /// A UV sphere of radius r: closed, outward-wound.
     pub(crate) fn uv_sphere(r: f64, rings: u32, segments: u32) -> Mesh {

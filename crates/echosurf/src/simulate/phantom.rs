@@ -513,6 +513,24 @@ pub fn phantom_sdf(kind: &PhantomKind) -> Result<impl Fn(DVec3) -> f64 + Send + 
     Ok(move |p: DVec3| phantom.distance(p))
 }
 
+impl Phantom for MeshSdf {
+    fn distance_and_gradient(&self, p: DVec3) -> (f64, DVec3) {
+        self.signed_distance_and_gradient(p)
+    }
+
+    fn bounds(&self) -> (DVec3, DVec3) {
+        self.bounding_box()
+    }
+
+    fn surfaces(&self) -> Vec<(String, &SurfaceFn)> {
+        Vec::new()
+    }
+
+    fn exact_meshes(&self) -> Option<Vec<(String, Mesh)>> {
+        Some(vec![("mesh".into(), self.exact_mesh())])
+    }
+}
+
 fn mesh_phantom(path: &Path) -> Result<MeshSdf> {
     let mesh = crate::io::read_mesh(path)?;
     MeshSdf::new(mesh)
