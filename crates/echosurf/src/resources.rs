@@ -4,7 +4,7 @@
 //! Peak memory per stage is measured by the caller, not here: it needs process-wide state (Linux's
 //! resettable high-water mark), which belongs to the application. The library announces each stage
 //! through [`Progress::stage_started`] and records what the caller measured
-//! (docs/decisions/0031-library-state.md).
+//! (docs/decisions/0033-library-state.md).
 
 use std::cell::Cell;
 use std::time::Instant;
