@@ -12,15 +12,7 @@ static PEAK_BEFORE_RESETS_BYTES: AtomicU64 = AtomicU64::new(0);
 
 /// Resident-set high-water mark of this process in bytes, if the platform reports it.
 pub fn peak_rss_bytes() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    line["VmHWM:".len()..]
-        .trim()
-        .trim_end_matches("kB")
-        .trim()
-        .parse::<u64>()
-        .ok()
-        .map(|kib| kib * 1024)
+    echosurf::resources::read_status_kib("VmHWM:").map(|kib| kib * 1024)
 }
 
 /// Resets the high-water mark to the current RSS; false where the platform does not allow it. The

@@ -50,7 +50,8 @@ pub fn current_rss_bytes() -> Option<u64> {
     read_status_kib("VmRSS:").map(|k| k * 1024)
 }
 
-fn read_status_kib(key: &str) -> Option<u64> {
+/// A `kB` field of `/proc/self/status` (e.g. `"VmHWM:"`), if the platform reports it. Reads only.
+pub fn read_status_kib(key: &str) -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = status.lines().find(|l| l.starts_with(key))?;
     line[key.len()..]
