@@ -108,7 +108,7 @@ fn main() -> ExitCode {
     temp_files::install();
     let _ = ctrlc::set_handler(|| {
         // A live session stops on the first Ctrl-C and writes what it recorded.
-        if echosurf_live::client::request_stop() {
+        if cmd::live::STOP.get().is_some_and(|stop| stop.request()) {
             eprintln!("\nstopping: writing the recorded frames (Ctrl-C again to quit at once)");
             return;
         }

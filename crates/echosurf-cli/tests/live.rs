@@ -341,3 +341,129 @@ fn live_writes_nothing_and_says_so_when_no_server_answers() {
     assert!(stderr.contains("no frames were received"), "{stderr}");
     assert!(!out.join("live.igs.mha").exists());
 }
+
+/// Reads messages from `stream` until it closes; returns the type names received.
+fn collect_types(mut stream: std::net::TcpStream) -> Vec<String> {
+    let limits = echosurf_live::codec::Limits {
+        max_body_bytes: 1 << 30,
+    };
+    let mut types = Vec::new();
+    while let Ok(raw) = echosurf_live::codec::read_message(&mut stream, &limits) {
+        if raw.header.type_name == "POLYDATA" {
+            let split = echosurf_live::codec::split_body(&raw.header, &raw.body).unwrap();
+            let poly = echosurf_live::codec::decode_polydata(split.content).unwrap();
+            assert!(
+                !poly.0.is_empty() && !poly.1.is_empty(),
+                "an empty POLYDATA was sent"
+            );
+        }
+        types.push(raw.header.type_name);
+    }
+    types
+}
+
+#[test]
+fn live_serves_a_sender_that_connects_twice_and_updates_by_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mha, config) = common::simulate_small_sphere(dir.path(), "1", &[]);
+    let sequence = read_sequence(&mha).unwrap();
+    let calibration = read_calibration(&config).unwrap();
+    let poses = resolve_poses(&sequence, Some(&calibration), ReferenceChoice::Auto, &mha).unwrap();
+    let echosurf::io::PixelData::U8(pixels) = &sequence.pixels else {
+        panic!("the simulator writes 8-bit frames")
+    };
+    let frame_len = sequence.width * sequence.height;
+    let messages: Vec<Vec<u8>> = poses
+        .poses
+        .iter()
+        .map(|p| {
+            let k = p.frame_index;
+            let image = Image::from_u8_frame(
+                sequence.width as u16,
+                sequence.height as u16,
+                pixels[k * frame_len..(k + 1) * frame_len].to_vec(),
+                &p.image_to_world,
+            );
+            let t = sequence.frames[k].timestamp_s.unwrap();
+            encode_message(
+                2,
+                "IMAGE",
+                "Image_Reference",
+                100.0 + t,
+                &image.encode(),
+                &[],
+                0,
+            )
+        })
+        .collect();
+    let n = messages.len();
+    let out = dir.path().join("live");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+        .args(["live", "--serve", "127.0.0.1:0", "--calibration"])
+        .arg(&config)
+        .arg("--out")
+        .arg(&out)
+        .args(["--frames", &n.to_string(), "--update-every", "0"])
+        .args(["--update-seconds", "0.2", "--update-samples", "3000"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    let address = loop {
+        line.clear();
+        assert!(
+            stderr.read_line(&mut line).unwrap() > 0,
+            "live exited before listening"
+        );
+        if let Some(a) = line.trim().strip_prefix("listening on ") {
+            break a.to_string();
+        }
+    };
+    // First connection: a third of the frames, then half a message and a drop.
+    let mut first = std::net::TcpStream::connect(&address).unwrap();
+    let third = n / 3;
+    for m in &messages[..third] {
+        first.write_all(m).unwrap();
+        std::thread::sleep(Duration::from_millis(30));
+    }
+    first.write_all(&messages[third][..100]).unwrap();
+    drop(first);
+    std::thread::sleep(Duration::from_millis(100));
+    // Second connection: the rest, slowly enough for updates by time; it reads what comes back.
+    let mut second = std::net::TcpStream::connect(&address).unwrap();
+    let reader = {
+        let stream = second.try_clone().unwrap();
+        std::thread::spawn(move || collect_types(stream))
+    };
+    for m in &messages[third..] {
+        second.write_all(m).unwrap();
+        std::thread::sleep(Duration::from_millis(30));
+    }
+    let received = reader.join().unwrap();
+    let output = child.wait_with_output().unwrap();
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut stderr, &mut rest).unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{stdout}\n{rest}");
+    assert!(stdout.contains("2 connection(s)"), "{stdout}");
+    assert!(stdout.contains("update at"), "no update by time:\n{stdout}");
+    let polydata = received.iter().filter(|t| *t == "POLYDATA").count();
+    assert!(polydata >= 2, "updates and the final surface: {received:?}");
+    let recorded = read_sequence(&out.join("live.igs.mha")).unwrap();
+    assert_eq!(recorded.frames.len(), n, "{rest}");
+    assert_eq!(
+        recorded.pixels, sequence.pixels,
+        "recorded pixels differ from those sent"
+    );
+    for (got, p) in recorded.frames.iter().zip(&poses.poses) {
+        let m = got.transforms["ImageToReference"].matrix;
+        assert!(
+            (m.w_axis - p.image_to_world.w_axis).abs().max_element() < 1e-3,
+            "frame {} is not the frame sent",
+            p.frame_index
+        );
+    }
+    assert!(out.join("live_surface.ply").exists());
+}

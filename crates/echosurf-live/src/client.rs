@@ -5,8 +5,9 @@
 //! that drops mid-message) reconnects with back-off; a bad CRC or content drops that message only.
 
 use std::io::Write;
-use std::net::{Shutdown, TcpStream, ToSocketAddrs};
+use std::net::{Shutdown, TcpListener, TcpStream, ToSocketAddrs};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::time::{Duration, Instant};
@@ -21,20 +22,45 @@ use crate::session::{IncrementalBands, LiveSession, SessionOptions, surface_of, 
 /// Device name of the surface sent back.
 pub const SURFACE_DEVICE: &str = "EchosurfSurface";
 
-static LIVE_RUNNING: AtomicBool = AtomicBool::new(false);
-static STOP_REQUESTED: AtomicBool = AtomicBool::new(false);
+/// A handle the application keeps to stop a running session from elsewhere (a Ctrl-C handler): the
+/// session then writes what it recorded. Cloning shares the one flag.
+#[derive(Debug, Clone, Default)]
+pub struct StopSignal(Arc<AtomicBool>);
 
-/// For a Ctrl-C handler: asks a running live session to stop (it then writes what it recorded) and
-/// returns true; returns false when no session runs or a stop was already asked (the handler then
-/// exits as usual).
-pub fn request_stop() -> bool {
-    LIVE_RUNNING.load(Ordering::SeqCst) && !STOP_REQUESTED.swap(true, Ordering::SeqCst)
+impl StopSignal {
+    /// Asks the session to stop; returns false when a stop was already asked.
+    pub fn request(&self) -> bool {
+        !self.0.swap(true, Ordering::SeqCst)
+    }
+
+    /// Whether a stop was asked.
+    pub fn requested(&self) -> bool {
+        self.0.load(Ordering::SeqCst)
+    }
+}
+
+/// Where the frames come from: connect to a server (PlusServer), or listen and let the sender connect.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Endpoint {
+    /// HOST:PORT of an OpenIGTLink server.
+    Connect(String),
+    /// Address to listen on (HOST:PORT; port 0 picks a free one, printed when listening).
+    Listen(String),
+}
+
+impl std::fmt::Display for Endpoint {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Endpoint::Connect(a) => write!(f, "{a}"),
+            Endpoint::Listen(a) => write!(f, "clients on {a}"),
+        }
+    }
 }
 
 /// Everything a live run needs.
 #[derive(Debug, Clone)]
 pub struct LiveOptions {
-    pub connect: String,
+    pub endpoint: Endpoint,
     pub session: SessionOptions,
     pub calibration: Calibration,
     pub out_dir: PathBuf,
@@ -49,6 +75,11 @@ pub struct LiveOptions {
     pub first_backoff: Duration,
     /// Protocol version of the POLYDATA messages sent back.
     pub send_version: u16,
+    /// Also refit when this long has passed since the last update began and new frames came
+    /// (`None`: frame counts only).
+    pub update_every: Option<Duration>,
+    /// Stops the run from outside (see [`StopSignal`]).
+    pub stop: StopSignal,
 }
 
 /// One surface update.
@@ -167,13 +198,17 @@ fn polydata_message(mesh: &Mesh, version: u16, message_id: u32) -> Option<Vec<u8
 }
 
 /// Connects, retrying with doubling waits; `None` after `max_reconnects` failures or a stop request.
-fn connect_with_backoff(options: &LiveOptions, warnings: &mut Vec<String>) -> Option<TcpStream> {
+fn connect_with_backoff(
+    address: &str,
+    options: &LiveOptions,
+    warnings: &mut Vec<String>,
+) -> Option<TcpStream> {
     let mut wait = options.first_backoff;
     for attempt in 1..=options.max_reconnects.max(1) {
-        if STOP_REQUESTED.load(Ordering::SeqCst) {
+        if options.stop.requested() {
             return None;
         }
-        let addrs = options.connect.to_socket_addrs();
+        let addrs = address.to_socket_addrs();
         let result = addrs.map_err(|e| e.to_string()).and_then(|mut a| {
             let addr = a.next().ok_or_else(|| "no address".to_string())?;
             TcpStream::connect_timeout(&addr, Duration::from_secs(5)).map_err(|e| e.to_string())
@@ -181,7 +216,7 @@ fn connect_with_backoff(options: &LiveOptions, warnings: &mut Vec<String>) -> Op
         match result {
             Ok(stream) => return Some(stream),
             Err(e) => {
-                let message = format!("connecting to {} (attempt {attempt}): {e}", options.connect);
+                let message = format!("connecting to {address} (attempt {attempt}): {e}");
                 eprintln!("warning: {message}");
                 warnings.push(message);
                 std::thread::sleep(wait);
@@ -192,16 +227,79 @@ fn connect_with_backoff(options: &LiveOptions, warnings: &mut Vec<String>) -> Op
     None
 }
 
+/// Waits for a sender to connect: without a limit for the first one, then (after a lost connection)
+/// as long as the reconnect schedule of a client would try; `None` then or on a stop request.
+fn accept_with_deadline(
+    listener: &TcpListener,
+    first: bool,
+    options: &LiveOptions,
+) -> Option<TcpStream> {
+    let mut patience = Duration::ZERO;
+    let mut wait = options.first_backoff;
+    for _ in 0..options.max_reconnects.max(1) {
+        patience += wait;
+        wait = (wait * 2).min(Duration::from_secs(5));
+    }
+    let started = Instant::now();
+    loop {
+        if options.stop.requested() || (!first && started.elapsed() > patience) {
+            return None;
+        }
+        match listener.accept() {
+            Ok((stream, _)) => {
+                // The listener polls; the accepted stream blocks as a connected client's does.
+                return stream.set_nonblocking(false).is_ok().then_some(stream);
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            Err(e) => {
+                eprintln!("warning: accepting a connection: {e}");
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        }
+    }
+}
+
+/// The source of connections: a server's address to (re)connect to, or our listening socket.
+enum Source {
+    Connect(String),
+    Listen(TcpListener),
+}
+
+impl Source {
+    fn open(endpoint: &Endpoint) -> echosurf::Result<Source> {
+        match endpoint {
+            Endpoint::Connect(address) => Ok(Source::Connect(address.clone())),
+            Endpoint::Listen(address) => {
+                let fail = |e: std::io::Error| {
+                    echosurf::Error::InvalidInput(format!("listening on {address}: {e}"))
+                };
+                let listener = TcpListener::bind(address.as_str()).map_err(fail)?;
+                listener.set_nonblocking(true).map_err(fail)?;
+                let local = listener.local_addr().map_err(fail)?;
+                eprintln!("listening on {local}");
+                Ok(Source::Listen(listener))
+            }
+        }
+    }
+
+    fn next(
+        &self,
+        first: bool,
+        options: &LiveOptions,
+        warnings: &mut Vec<String>,
+    ) -> Option<TcpStream> {
+        match self {
+            Source::Connect(address) => connect_with_backoff(address, options, warnings),
+            Source::Listen(listener) => accept_with_deadline(listener, first, options),
+        }
+    }
+}
+
 /// Runs the session until the server closes, `max_frames` are recorded, a stop is requested or the
 /// server cannot be reached; then writes the sequence and the final mesh into `out_dir`.
 pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
-    LIVE_RUNNING.store(true, Ordering::SeqCst);
-    let result = run_inner(options);
-    LIVE_RUNNING.store(false, Ordering::SeqCst);
-    result
-}
-
-fn run_inner(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
     let sequence_path = options.out_dir.join("live.igs.mha");
     let mesh_path = options.out_dir.join("live_surface.ply");
     let mut session = LiveSession::new(options.session.clone());
@@ -215,13 +313,15 @@ fn run_inner(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
     let mut connections = 0;
     let mut message_id = 0u32;
     let mut last_frame_at = Instant::now();
+    let mut last_update_at = Instant::now();
+    let source = Source::open(&options.endpoint)?;
     let ended;
     'connections: loop {
-        let Some(stream) = connect_with_backoff(options, &mut warnings) else {
-            ended = if STOP_REQUESTED.load(Ordering::SeqCst) {
-                "stopped (Ctrl-C)".to_string()
-            } else {
-                format!("could not reach {}", options.connect)
+        let Some(stream) = source.next(connections == 0, options, &mut warnings) else {
+            ended = match &options.endpoint {
+                _ if options.stop.requested() => "stopped (Ctrl-C)".to_string(),
+                Endpoint::Connect(address) => format!("could not reach {address}"),
+                Endpoint::Listen(_) => "no sender reconnected".to_string(),
             };
             break;
         };
@@ -229,13 +329,13 @@ fn run_inner(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
         let _ = stream.set_nodelay(true);
         let mut writer = stream
             .try_clone()
-            .map_err(|e| echosurf::Error::io(Path::new(&options.connect), e))?;
+            .map_err(|e| echosurf::Error::io(Path::new(&options.endpoint.to_string()), e))?;
         let _ = writer.set_write_timeout(Some(Duration::from_secs(2)));
         let (tx, rx) = mpsc::sync_channel(256);
         let limits = options.limits;
         let reader = std::thread::spawn(move || reader_loop(stream, limits, tx));
         loop {
-            if STOP_REQUESTED.load(Ordering::SeqCst) {
+            if options.stop.requested() {
                 let _ = writer.shutdown(Shutdown::Both);
                 let _ = reader.join();
                 ended = "stopped (Ctrl-C)".to_string();
@@ -262,10 +362,16 @@ fn run_inner(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
                     ),
                 }
             }
-            if session.update_due() && !worker.busy {
+            let time_due = options.update_every.is_some_and(|period| {
+                session.frames_since_update() > 0 && last_update_at.elapsed() >= period
+            });
+            if (session.update_due() || time_due) && !worker.busy {
                 let snapshot = session.snapshot_for_update();
                 match worker.jobs.try_send((snapshot, Instant::now())) {
-                    Ok(()) => worker.busy = true,
+                    Ok(()) => {
+                        worker.busy = true;
+                        last_update_at = Instant::now();
+                    }
                     Err(TrySendError::Full(_)) => {}
                     Err(TrySendError::Disconnected(_)) => {
                         warn("the surface worker stopped".into(), &mut warnings);
@@ -331,7 +437,11 @@ fn run_inner(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
                 Ok(NetEvent::Closed { reason, clean }) => {
                     let _ = reader.join();
                     if clean {
-                        ended = "the server closed the connection".to_string();
+                        ended = match options.endpoint {
+                            Endpoint::Connect(_) => "the server closed the connection",
+                            Endpoint::Listen(_) => "the sender closed the connection",
+                        }
+                        .to_string();
                         break 'connections;
                     }
                     warn(
@@ -390,7 +500,7 @@ fn finish(
     if sequence.frames.is_empty() {
         return Err(echosurf::Error::InvalidInput(format!(
             "no frames were received from {}: nothing written",
-            options.connect
+            options.endpoint
         )));
     }
     echosurf::io::write_sequence(sequence_path, sequence, false)?;

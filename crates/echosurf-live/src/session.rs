@@ -302,6 +302,11 @@ impl LiveSession {
             && self.frames_since_update >= self.options.update_every_frames
     }
 
+    /// Frames recorded since the last update's snapshot.
+    pub fn frames_since_update(&self) -> usize {
+        self.frames_since_update
+    }
+
     /// A copy of the recording for an update, counting from now to the next.
     pub fn snapshot_for_update(&mut self) -> TrackedSequence {
         self.frames_since_update = 0;

@@ -6,15 +6,27 @@ use std::time::Duration;
 
 use anyhow::Context;
 use echosurf::pipeline::ExtractOptions;
-use echosurf_live::client::{self, LiveOptions};
+use echosurf_live::client::{self, Endpoint, LiveOptions, StopSignal};
 use echosurf_live::codec::Limits;
 use echosurf_live::session::{SessionOptions, update_extract_options};
+
+/// The running session's stop handle, for the Ctrl-C handler (set once `live` starts).
+pub static STOP: std::sync::OnceLock<StopSignal> = std::sync::OnceLock::new();
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The OpenIGTLink server, HOST:PORT (PlusServer's default port is 18944).
-    #[arg(long, value_name = "HOST:PORT")]
-    pub connect: String,
+    #[arg(
+        long,
+        value_name = "HOST:PORT",
+        required_unless_present = "serve",
+        conflicts_with = "serve"
+    )]
+    pub connect: Option<String>,
+    /// Be the server instead: listen on PORT (all interfaces) or HOST:PORT and take the frames from
+    /// the client that connects (port 0: a free port, printed when listening).
+    #[arg(long, value_name = "PORT|HOST:PORT")]
+    pub serve: Option<String>,
     /// Only IMAGE messages from this device are frames (default: any device).
     #[arg(long)]
     pub image_device: Option<String>,
@@ -35,6 +47,10 @@ pub struct Args {
     /// Refit and send the surface after every this many new frames (0: only at the end).
     #[arg(long, default_value_t = 30)]
     pub update_every: usize,
+    /// Also refit and send the surface when this many seconds have passed since the last update and
+    /// new frames came (default: by frame count only).
+    #[arg(long, value_name = "SECONDS")]
+    pub update_seconds: Option<f64>,
     /// Sample budget of the updates during the sweep (the final mesh uses `extract`'s defaults).
     #[arg(long, default_value_t = 10_000)]
     pub update_samples: usize,
@@ -62,6 +78,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.frames == Some(0) {
         anyhow::bail!("--frames must be at least 1");
     }
+    let update_every = match args.update_seconds {
+        None => None,
+        Some(s) if s.is_finite() && s > 0.0 => Some(Duration::from_secs_f64(s)),
+        Some(_) => anyhow::bail!("--update-seconds must be a positive number of seconds"),
+    };
+    let endpoint = match (args.connect, args.serve) {
+        (Some(address), None) => Endpoint::Connect(address),
+        (None, Some(port)) if !port.is_empty() && port.bytes().all(|b| b.is_ascii_digit()) => {
+            Endpoint::Listen(format!("0.0.0.0:{port}"))
+        }
+        (None, Some(address)) => Endpoint::Listen(address),
+        _ => anyhow::bail!("give either --connect HOST:PORT or --serve PORT"),
+    };
     let calibration = echosurf::io::read_calibration(&args.calibration)?;
     if args.out.exists() && !args.out.is_dir() {
         anyhow::bail!("--out {}: exists and is not a folder", args.out.display());
@@ -69,7 +98,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let options = LiveOptions {
-        connect: args.connect.clone(),
+        endpoint,
         session: SessionOptions {
             image_device: args.image_device,
             transform_device: args.transform,
@@ -87,6 +116,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         max_reconnects: args.reconnect_attempts,
         first_backoff: Duration::from_millis(200),
         send_version: args.send_version,
+        update_every,
+        stop: STOP.get_or_init(StopSignal::default).clone(),
     };
     let summary = client::run(&options)?;
     for u in &summary.updates {
