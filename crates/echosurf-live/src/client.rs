@@ -316,6 +316,8 @@ pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
     let mut last_update_at = Instant::now();
     let source = Source::open(&options.endpoint)?;
     let ended;
+    // Set when the run stops at `max_frames`: the peer then gets the final surface too.
+    let mut final_writer = None;
     'connections: loop {
         let Some(stream) = source.next(connections == 0, options, &mut warnings) else {
             ended = match &options.endpoint {
@@ -393,35 +395,8 @@ pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
                     session.sequence().frames.len()
                 );
                 // The connection stays open for the final surface.
-                for w in session.finish() {
-                    warn(w, &mut warnings);
-                }
-                let summary = finish(
-                    options,
-                    &mut session,
-                    &sequence_path,
-                    &mesh_path,
-                    last_frame_at,
-                    &mut warnings,
-                )?;
-                message_id = message_id.wrapping_add(1);
-                let _ = writer.set_write_timeout(Some(Duration::from_secs(10)));
-                if let Some(bytes) = polydata_message(&summary.0, options.send_version, message_id)
-                {
-                    let _ = writer.write_all(&bytes);
-                    let _ = writer.flush();
-                }
-                let _ = writer.shutdown(Shutdown::Both);
-                return Ok(summarise(
-                    summary,
-                    session.sequence(),
-                    updates,
-                    warnings,
-                    connections,
-                    sequence_path,
-                    mesh_path,
-                    ended,
-                ));
+                final_writer = Some(writer);
+                break 'connections;
             }
             match rx.recv_timeout(Duration::from_millis(20)) {
                 Ok(NetEvent::Message(decoded)) => {
@@ -474,6 +449,15 @@ pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
         last_frame_at,
         &mut warnings,
     )?;
+    if let Some(mut writer) = final_writer {
+        message_id = message_id.wrapping_add(1);
+        let _ = writer.set_write_timeout(Some(Duration::from_secs(10)));
+        if let Some(bytes) = polydata_message(&summary.0, options.send_version, message_id) {
+            let _ = writer.write_all(&bytes);
+            let _ = writer.flush();
+        }
+        let _ = writer.shutdown(Shutdown::Both);
+    }
     Ok(summarise(
         summary,
         session.sequence(),

@@ -338,12 +338,17 @@ pub fn surface_of(
     options: &ExtractOptions,
 ) -> echosurf::Result<Mesh> {
     let output = pipeline::extract(sequence, Some(calibration), options, &NoProgress)?;
-    Ok(output
+    Ok(first_mesh(output))
+}
+
+/// The first level's mesh of an extraction (empty when there is none).
+fn first_mesh(output: pipeline::ExtractOutput) -> Mesh {
+    output
         .surfaces
         .into_iter()
         .next()
         .map(|s| s.mesh)
-        .unwrap_or_default())
+        .unwrap_or_default()
 }
 
 /// The bands of the frames segmented so far, so an update segments only the frames that arrived since
@@ -448,12 +453,7 @@ pub fn update_surface(
     };
     let output =
         pipeline::extract_with_masks(sequence, Some(calibration), options, masks, &NoProgress)?;
-    Ok(output
-        .surfaces
-        .into_iter()
-        .next()
-        .map(|s| s.mesh)
-        .unwrap_or_default())
+    Ok(first_mesh(output))
 }
 
 /// The centre of a frame in the world (for tests and reports).
