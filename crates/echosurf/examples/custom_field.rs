@@ -28,7 +28,8 @@ impl Torus {
     }
 }
 
-/// The surfacer asks for values (and gradients) of whole batches of points at once.
+/// The surfacer asks for values (and gradients) of whole batches of points at once. (For a closure
+/// returning `(value, gradient)`, `surface::FnField(|p| ...)` implements this trait for you.)
 impl ScalarField for Torus {
     fn values(&self, points: &[DVec3], out: &mut [f64]) {
         for (p, o) in points.iter().zip(out.iter_mut()) {
