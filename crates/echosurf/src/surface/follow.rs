@@ -1,11 +1,12 @@
 //! Which lattice cells the surface crosses: surface-following from seeds, or a full-grid scan.
 //!
-//! Lattice values are evaluated once and shared by all levels. Surface-following keeps them in a hash map
-//! keyed by packed lattice coordinates and evaluates each wave of new nodes in one parallel batch. A cell
-//! is *crossed* when its corners lie on both sides of the level; under marching tetrahedra the surface
-//! leaves a cell only through a face whose corners straddle the level, so growing through such faces from
-//! one crossed cell reaches every crossed cell of that connected piece of surface. Cells outside the
-//! lattice or outside the region of trust are neither grown into nor surfaced.
+//! Lattice values are evaluated once and shared by all levels. Surface-following keeps them in a
+//! [`CellMap`] (the shared sparse cell hash) keyed by packed lattice coordinates and evaluates each wave
+//! of new nodes in one parallel batch. A cell is *crossed* when its corners lie on both sides of the
+//! level; under marching tetrahedra the surface leaves a cell only through a face whose corners straddle
+//! the level, so growing through such faces from one crossed cell reaches every crossed cell of that
+//! connected piece of surface. Cells outside the lattice or outside the region of trust are neither
+//! grown into nor surfaced.
 
 use glam::DVec3;
 
