@@ -46,7 +46,7 @@ pub mod resources;
 pub mod samples;
 pub mod segment;
 pub mod simulate;
-pub(crate) mod spatial;
+pub mod spatial;
 pub mod surface;
 pub mod voxel;
 

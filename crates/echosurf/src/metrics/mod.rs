@@ -5,9 +5,7 @@
 //! sample's exact distance to the other mesh is found through a [`TriangleBvh`]. Work is split into
 //! fixed chunks whose results are concatenated in order, so the numbers do not depend on the thread count.
 
-mod bvh;
-
-pub use bvh::{Nearest, TriangleBvh, closest_point_on_triangle};
+pub use crate::spatial::{Nearest, TriangleBvh, closest_point_on_triangle};
 
 use glam::DVec3;
 use rand::{Rng, SeedableRng};

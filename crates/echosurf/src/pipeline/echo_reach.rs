@@ -167,7 +167,8 @@ impl EchoReach {
     }
 }
 
-/// Grid nodes over a frame at which the gaps to the neighbouring frames are measured.
+/// Grid nodes over a frame at which the gaps to the neighbouring frames are measured (a sampling grid
+/// over one frame's pixels, not a spatial index: the echo queries go through [`PointBuckets`]).
 struct GapGrid {
     us: Vec<f64>,
     vs: Vec<f64>,

@@ -29,6 +29,7 @@ use super::direct::lu_solve;
 use super::tree::{sum_r, sum_r_grad};
 use super::trend::TrendBasis;
 use crate::error::FormatProblem;
+use crate::spatial::{BoxTree, KdTree};
 use crate::{Error, Result};
 
 /// Patches with fewer samples are grown (a dense local solve needs some support around the trend).
@@ -42,9 +43,6 @@ const ROOT_MARGIN_MM: f64 = 2.0;
 const SUPPORT_SHARE: f64 = 0.3;
 /// Halvings of the support share when a support box holds more samples than the patch cap.
 const SUPPORT_NARROWING_STEPS: usize = 8;
-/// Support boxes per BVH leaf.
-const BVH_LEAF: usize = 4;
-const NO_CHILD: u32 = u32::MAX;
 
 /// Partition parameters (see the module doc).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -76,7 +74,8 @@ pub(crate) struct PuModel {
     pub ys: Vec<f64>,
     pub zs: Vec<f64>,
     pub coefficients: Vec<f64>,
-    bvh: Bvh,
+    /// The support boxes' hierarchy (built from the boxes alone, so a loaded model rebuilds the same one).
+    supports: BoxTree,
 }
 
 /// Statistics of a partition-of-unity fit.
@@ -121,25 +120,22 @@ pub(crate) fn fit_pu(
     let margin = ROOT_MARGIN_FRACTION * (hi - lo).max_element() + ROOT_MARGIN_MM;
     let root_lo = lo - DVec3::splat(margin);
     let root_hi = hi + DVec3::splat(margin);
-    let tree = KdTree::build(points, root_lo, root_hi, params.leaf_points);
+    let tree = KdTree::new(points, root_lo, root_hi, params.leaf_points);
     let max_patch = (MAX_PATCH_FACTOR * params.leaf_points).max(MIN_PATCH_POINTS);
-    let leaves: Vec<u32> = (0..tree.nodes.len() as u32)
-        .filter(|&k| tree.nodes[k as usize].left == NO_CHILD)
-        .collect();
+    let leaves = tree.leaf_cells();
     progress.start("fit: partition of unity, patches", leaves.len() as u64);
     let done = std::sync::atomic::AtomicU64::new(0);
     let patches: Vec<Result<LocalFit>> = leaves
         .par_iter()
-        .map(|&k| {
-            let node = &tree.nodes[k as usize];
-            let centre = (node.lo + node.hi) * 0.5;
-            let cell_half = (node.hi - node.lo) * 0.5;
+        .map(|&(cell_lo, cell_hi)| {
+            let centre = (cell_lo + cell_hi) * 0.5;
+            let cell_half = (cell_hi - cell_lo) * 0.5;
             let expand = (cell_half * params.overlap).max(DVec3::splat(params.min_overlap_mm));
             let mut half = cell_half + expand;
-            let mut members = tree.in_box(points, centre - half, centre + half);
+            let mut members = tree.in_box(centre - half, centre + half);
             while members.len() < MIN_PATCH_POINTS.min(points.len()) {
                 half *= 1.5;
-                members = tree.in_box(points, centre - half, centre + half);
+                members = tree.in_box(centre - half, centre + half);
             }
             let mut support_half = cell_half + (half - cell_half) * SUPPORT_SHARE;
             if members.len() > max_patch {
@@ -148,8 +144,7 @@ pub(crate) fn fit_pu(
                 // the fitting margin beyond it. Where even the support box holds more than the cap
                 // (dense crossing frames), it is narrowed towards the cell (which holds at most
                 // `leaf_points` samples) until it does not.
-                let mut required =
-                    tree.in_open_box(points, centre - support_half, centre + support_half);
+                let mut required = tree.in_open_box(centre - support_half, centre + support_half);
                 let mut share = SUPPORT_SHARE;
                 for _ in 0..SUPPORT_NARROWING_STEPS {
                     if required.len() <= max_patch {
@@ -157,8 +152,7 @@ pub(crate) fn fit_pu(
                     }
                     share *= 0.5;
                     support_half = cell_half + (half - cell_half) * share;
-                    required =
-                        tree.in_open_box(points, centre - support_half, centre + support_half);
+                    required = tree.in_open_box(centre - support_half, centre + support_half);
                 }
                 if required.len() >= max_patch {
                     members = required;
@@ -210,7 +204,7 @@ pub(crate) fn fit_pu(
         ys: Vec::new(),
         zs: Vec::new(),
         coefficients: Vec::new(),
-        bvh: Bvh::default(),
+        supports: BoxTree::default(),
     };
     let mut stats = PuStats {
         min_trend_rank: 4,
@@ -239,12 +233,11 @@ pub(crate) fn fit_pu(
         }
         model.offsets.push(model.coefficients.len());
     }
-    model.bvh = Bvh::build(&model.support_centre, &model.support_half);
+    model.supports = support_tree(&model.support_centre, &model.support_half);
     debug_assert!(
-        tree.nodes
+        leaves
             .iter()
-            .filter(|n| n.left == NO_CHILD)
-            .all(|n| model.total_weight((n.lo + n.hi) * 0.5) > 0.0),
+            .all(|&(lo, hi)| model.total_weight((lo + hi) * 0.5) > 0.0),
         "every cell centre must lie in a support"
     );
     let (residuals, foreign) = model.system_residuals(values, &members);
@@ -525,7 +518,8 @@ impl PuModel {
         self.support_centre.len()
     }
 
-    /// Raw (unnormalised) weights of all supports containing `x` (clamped to the root box), in BVH order.
+    /// Raw (unnormalised) weights of all supports containing `x` (clamped to the root box), in the
+    /// support tree's order.
     fn raw_weights(&self, x: DVec3, out: &mut Vec<WeightTerm>) {
         self.covering_weights(x, out);
         if out.is_empty() {
@@ -565,53 +559,33 @@ impl PuModel {
             f64::from(u8::from(xc.y == x.y)),
             f64::from(u8::from(xc.z == x.z)),
         ];
-        let mut stack = [0u32; 64];
-        let mut top = 0usize;
-        if self.bvh.nodes.is_empty() {
-            return;
-        }
-        stack[0] = 0;
-        top += 1;
-        while top > 0 {
-            top -= 1;
-            let node = &self.bvh.nodes[stack[top] as usize];
-            if xc.cmplt(node.lo).any() || xc.cmpgt(node.hi).any() {
-                continue;
+        self.supports.visit_leaves_containing(xc, |j| {
+            let c = self.support_centre[j as usize];
+            let h = self.support_half[j as usize];
+            let d = xc - c;
+            let t = d.abs() / h;
+            if t.x >= 1.0 || t.y >= 1.0 || t.z >= 1.0 {
+                return;
             }
-            if node.left == NO_CHILD {
-                for &j in &self.bvh.order[node.start as usize..node.end as usize] {
-                    let c = self.support_centre[j as usize];
-                    let h = self.support_half[j as usize];
-                    let d = xc - c;
-                    let t = d.abs() / h;
-                    if t.x >= 1.0 || t.y >= 1.0 || t.z >= 1.0 {
-                        continue;
-                    }
-                    let (px, dx) = wendland(t.x);
-                    let (py, dy) = wendland(t.y);
-                    let (pz, dz) = wendland(t.z);
-                    let weight = px * py * pz;
-                    if weight <= 0.0 {
-                        continue;
-                    }
-                    // d phi(|d| / h) / dx = phi'(t) sign(d) / h.
-                    let gradient = DVec3::new(
-                        inside[0] * dx * d.x.signum() / h.x * py * pz,
-                        inside[1] * dy * d.y.signum() / h.y * px * pz,
-                        inside[2] * dz * d.z.signum() / h.z * px * py,
-                    );
-                    out.push(WeightTerm {
-                        patch: j,
-                        weight,
-                        gradient,
-                    });
-                }
-            } else if top + 2 <= stack.len() {
-                stack[top] = node.right;
-                stack[top + 1] = node.left;
-                top += 2;
+            let (px, dx) = wendland(t.x);
+            let (py, dy) = wendland(t.y);
+            let (pz, dz) = wendland(t.z);
+            let weight = px * py * pz;
+            if weight <= 0.0 {
+                return;
             }
-        }
+            // d phi(|d| / h) / dx = phi'(t) sign(d) / h.
+            let gradient = DVec3::new(
+                inside[0] * dx * d.x.signum() / h.x * py * pz,
+                inside[1] * dy * d.y.signum() / h.y * px * pz,
+                inside[2] * dz * d.z.signum() / h.z * px * py,
+            );
+            out.push(WeightTerm {
+                patch: j,
+                weight,
+                gradient,
+            });
+        });
     }
 
     fn total_weight(&self, x: DVec3) -> f64 {
@@ -758,13 +732,12 @@ impl PuModel {
         }
     }
 
-    /// Approximate heap size (model arrays + BVH).
+    /// Approximate heap size (model arrays + support tree).
     pub fn memory_bytes(&self) -> usize {
         self.points.len() * 24
             + self.coefficients.len() * 32
             + self.patches() * (10 * 8 + 8)
-            + self.bvh.nodes.len() * std::mem::size_of::<BvhNode>()
-            + self.bvh.order.len() * 4
+            + self.supports.memory_bytes()
     }
 
     /// Body of an `.esrbf` version-2 file (after magic and version): f64 smoothing, f64 eval_accuracy,
@@ -887,7 +860,7 @@ impl PuModel {
             ys: Vec::with_capacity(k),
             zs: Vec::with_capacity(k),
             coefficients: Vec::with_capacity(k),
-            bvh: Bvh::default(),
+            supports: BoxTree::default(),
         };
         model.offsets.push(0);
         let mut total: usize = 0;
@@ -939,244 +912,17 @@ impl PuModel {
                 "non-finite value or non-positive support size".into(),
             ));
         }
-        model.bvh = Bvh::build(&model.support_centre, &model.support_half);
+        model.supports = support_tree(&model.support_centre, &model.support_half);
         Ok(model)
     }
 }
 
-/// k-d tree over the samples whose leaf cells tile the root box.
-struct KdTree {
-    nodes: Vec<KdNode>,
-    /// Sample indices in tree order; node k owns `order[start..end]`.
-    order: Vec<u32>,
-}
-
-struct KdNode {
-    lo: DVec3,
-    hi: DVec3,
-    start: u32,
-    end: u32,
-    left: u32,
-    right: u32,
-}
-
-impl KdTree {
-    fn build(points: &[DVec3], root_lo: DVec3, root_hi: DVec3, leaf: usize) -> KdTree {
-        let mut tree = KdTree {
-            nodes: Vec::new(),
-            order: (0..points.len() as u32).collect(),
-        };
-        tree.split(points, root_lo, root_hi, 0, points.len(), leaf.max(1));
-        tree
-    }
-
-    fn split(
-        &mut self,
-        points: &[DVec3],
-        lo: DVec3,
-        hi: DVec3,
-        start: usize,
-        end: usize,
-        leaf: usize,
-    ) -> u32 {
-        let id = self.nodes.len() as u32;
-        self.nodes.push(KdNode {
-            lo,
-            hi,
-            start: start as u32,
-            end: end as u32,
-            left: NO_CHILD,
-            right: NO_CHILD,
-        });
-        if end - start <= leaf {
-            return id;
-        }
-        let slice = &mut self.order[start..end];
-        let (plo, phi) = bounds(
-            &slice
-                .iter()
-                .map(|&i| points[i as usize])
-                .collect::<Vec<_>>(),
-        );
-        let spread = phi - plo;
-        let mut axes = [0usize, 1, 2];
-        axes.sort_by(|&a, &b| spread[b].total_cmp(&spread[a]).then(a.cmp(&b)));
-        let Some((mid, value)) = axes
-            .iter()
-            .filter(|&&a| spread[a] > 0.0)
-            .find_map(|&a| median_split(points, slice, a).map(|(m, v)| (m, (a, v))))
-        else {
-            return id; // all samples coincide: cannot split
-        };
-        let (axis, split_value) = value;
-        let mut left_hi = hi;
-        left_hi[axis] = split_value;
-        let mut right_lo = lo;
-        right_lo[axis] = split_value;
-        let left = self.split(points, lo, left_hi, start, start + mid, leaf);
-        let right = self.split(points, right_lo, hi, start + mid, end, leaf);
-        let node = &mut self.nodes[id as usize];
-        node.left = left;
-        node.right = right;
-        id
-    }
-
-    /// Samples strictly inside the box (where a support's weight is positive), in tree order.
-    fn in_open_box(&self, points: &[DVec3], lo: DVec3, hi: DVec3) -> Vec<u32> {
-        let mut out = self.in_box(points, lo, hi);
-        out.retain(|&i| {
-            let p = points[i as usize];
-            p.cmpgt(lo).all() && p.cmplt(hi).all()
-        });
-        out
-    }
-
-    /// Samples inside the closed box, in tree order.
-    fn in_box(&self, points: &[DVec3], lo: DVec3, hi: DVec3) -> Vec<u32> {
-        let mut out = Vec::new();
-        let mut stack = vec![0u32];
-        while let Some(k) = stack.pop() {
-            let node = &self.nodes[k as usize];
-            if node.hi.cmplt(lo).any() || node.lo.cmpgt(hi).any() {
-                continue;
-            }
-            if node.left == NO_CHILD {
-                for &i in &self.order[node.start as usize..node.end as usize] {
-                    let p = points[i as usize];
-                    if p.cmpge(lo).all() && p.cmple(hi).all() {
-                        out.push(i);
-                    }
-                }
-            } else {
-                stack.push(node.right);
-                stack.push(node.left);
-            }
-        }
-        out
-    }
-}
-
-/// Reorders `slice` so that samples below a split value along `axis` come first; returns the count
-/// below and the split value (strictly between the two sides' coordinates), near the median.
-fn median_split(points: &[DVec3], slice: &mut [u32], axis: usize) -> Option<(usize, f64)> {
-    let key = |i: &u32| points[*i as usize][axis];
-    let mid = slice.len() / 2;
-    slice.select_nth_unstable_by(mid, |a, b| key(a).total_cmp(&key(b)).then(a.cmp(b)));
-    let pivot = key(&slice[mid]);
-    let below_max = slice[..mid]
+/// The hierarchy over the support boxes `centre +- half`.
+fn support_tree(centres: &[DVec3], halves: &[DVec3]) -> BoxTree {
+    let bounds: Vec<(DVec3, DVec3)> = centres
         .iter()
-        .map(key)
-        .fold(f64::NEG_INFINITY, f64::max);
-    if below_max < pivot {
-        return Some((mid, 0.5 * (below_max + pivot)));
-    }
-    // Ties at the median: put everything strictly below the pivot left, or everything up to it.
-    let strictly_below = partition_in_place(slice, |i| key(i) < pivot);
-    if strictly_below > 0 {
-        let left_max = slice[..strictly_below]
-            .iter()
-            .map(key)
-            .fold(f64::NEG_INFINITY, f64::max);
-        return Some((strictly_below, 0.5 * (left_max + pivot)));
-    }
-    let up_to = partition_in_place(slice, |i| key(i) <= pivot);
-    if up_to < slice.len() {
-        let right_min = slice[up_to..].iter().map(key).fold(f64::INFINITY, f64::min);
-        return Some((up_to, 0.5 * (pivot + right_min)));
-    }
-    None
-}
-
-/// Stable partition: elements satisfying `pred` first. Returns their count.
-fn partition_in_place(slice: &mut [u32], pred: impl Fn(&u32) -> bool) -> usize {
-    let (yes, no): (Vec<u32>, Vec<u32>) = slice.iter().partition(|i| pred(i));
-    let count = yes.len();
-    for (dst, src) in slice.iter_mut().zip(yes.into_iter().chain(no)) {
-        *dst = src;
-    }
-    count
-}
-
-/// Bounding-volume hierarchy over the support boxes (built from the boxes alone, so a loaded model
-/// rebuilds exactly the same one).
-#[derive(Debug, Clone, Default)]
-struct Bvh {
-    nodes: Vec<BvhNode>,
-    order: Vec<u32>,
-}
-
-#[derive(Debug, Clone)]
-struct BvhNode {
-    lo: DVec3,
-    hi: DVec3,
-    start: u32,
-    end: u32,
-    left: u32,
-    right: u32,
-}
-
-impl Bvh {
-    fn build(centres: &[DVec3], halves: &[DVec3]) -> Bvh {
-        let mut bvh = Bvh {
-            nodes: Vec::new(),
-            order: (0..centres.len() as u32).collect(),
-        };
-        if !centres.is_empty() {
-            bvh.split(centres, halves, 0, centres.len(), 0);
-        }
-        bvh
-    }
-
-    fn split(
-        &mut self,
-        centres: &[DVec3],
-        halves: &[DVec3],
-        start: usize,
-        end: usize,
-        depth: usize,
-    ) -> u32 {
-        let slice = &mut self.order[start..end];
-        let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-        let (mut clo, mut chi) = (lo, hi);
-        for &j in slice.iter() {
-            let (c, h) = (centres[j as usize], halves[j as usize]);
-            lo = lo.min(c - h);
-            hi = hi.max(c + h);
-            clo = clo.min(c);
-            chi = chi.max(c);
-        }
-        let id = self.nodes.len() as u32;
-        self.nodes.push(BvhNode {
-            lo,
-            hi,
-            start: start as u32,
-            end: end as u32,
-            left: NO_CHILD,
-            right: NO_CHILD,
-        });
-        // Depth bound keeps the query stack (64 entries, 2 pushes per level) from overflowing.
-        if end - start <= BVH_LEAF || depth >= 30 {
-            return id;
-        }
-        let spread = chi - clo;
-        let axis = if spread.x >= spread.y && spread.x >= spread.z {
-            0
-        } else if spread.y >= spread.z {
-            1
-        } else {
-            2
-        };
-        let mid = slice.len() / 2;
-        slice.select_nth_unstable_by(mid, |a, b| {
-            centres[*a as usize][axis]
-                .total_cmp(&centres[*b as usize][axis])
-                .then(a.cmp(b))
-        });
-        let left = self.split(centres, halves, start, start + mid, depth + 1);
-        let right = self.split(centres, halves, start + mid, end, depth + 1);
-        let node = &mut self.nodes[id as usize];
-        node.left = left;
-        node.right = right;
-        id
-    }
+        .zip(halves)
+        .map(|(&c, &h)| (c - h, c + h))
+        .collect();
+    BoxTree::new(centres, &bounds)
 }

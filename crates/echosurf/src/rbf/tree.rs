@@ -11,6 +11,9 @@
 //! points themselves otherwise. The kernel only needs to be evaluated, so gradients come for free. The grid
 //! uses fewer nodes along thin box sides (a cluster inside one frame plane is flat), with the count chosen so
 //! each side's interpolation error matches the longest side's.
+//!
+//! This tree is the treecode's cluster tree (tight boxes that carry interpolation proxies and interaction
+//! lists), not a query index; the crate's query indexes are in [`crate::spatial`].
 
 use glam::DVec3;
 

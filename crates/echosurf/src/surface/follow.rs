@@ -1,24 +1,26 @@
 //! Which lattice cells the surface crosses: surface-following from seeds, or a full-grid scan.
 //!
-//! Lattice values are evaluated once and shared by all levels. Surface-following keeps them in a hash map
-//! keyed by packed lattice coordinates and evaluates each wave of new nodes in one parallel batch. A cell
-//! is *crossed* when its corners lie on both sides of the level; under marching tetrahedra the surface
-//! leaves a cell only through a face whose corners straddle the level, so growing through such faces from
-//! one crossed cell reaches every crossed cell of that connected piece of surface. Cells outside the
-//! lattice or outside the region of trust are neither grown into nor surfaced.
+//! Lattice values are evaluated once and shared by all levels. Surface-following keeps them in a
+//! [`CellMap`] (the shared sparse cell hash) keyed by packed lattice coordinates and evaluates each wave
+//! of new nodes in one parallel batch. A cell is *crossed* when its corners lie on both sides of the
+//! level; under marching tetrahedra the surface leaves a cell only through a face whose corners straddle
+//! the level, so growing through such faces from one crossed cell reaches every crossed cell of that
+//! connected piece of surface. Cells outside the lattice or outside the region of trust are neither
+//! grown into nor surfaced.
 
 use glam::DVec3;
 
 use super::ScalarField;
-use super::lattice::{EvalCounter, Ijk, KeyMap, KeySet, Lattice, add, corner_offset, pack, unpack};
+use super::lattice::{EvalCounter, Ijk, Lattice, add, corner_offset};
 use crate::Result;
 use crate::spatial::PointBuckets;
+use crate::spatial::cell_grid::{CellMap, CellSet, fits_cell_key, pack_cell, unpack_cell};
 
 /// Cached lattice values: a dense array for the full grid, a hash map when following the surface.
 #[derive(Debug)]
 pub(crate) enum NodeValues {
     Dense { dims: [usize; 3], values: Vec<f64> },
-    Sparse(KeyMap<f64>),
+    Sparse(CellMap<f64>),
 }
 
 impl NodeValues {
@@ -28,7 +30,7 @@ impl NodeValues {
             NodeValues::Dense { dims, values } => {
                 values[n[0] as usize + dims[0] * (n[1] as usize + dims[1] * n[2] as usize)]
             }
-            NodeValues::Sparse(map) => map[&pack(n)],
+            NodeValues::Sparse(map) => map[&pack_cell(n)],
         }
     }
 
@@ -111,7 +113,7 @@ pub(crate) fn full_grid(
                     let cell = [i, j, k];
                     let v = cell_corners(cell).map(|n| nodes.get(n));
                     if straddles(&v, level) && trusted(lattice, trust, cell) {
-                        cells.push(pack(cell));
+                        cells.push(pack_cell(cell));
                     }
                 }
             }
@@ -129,7 +131,7 @@ struct Follower<'a> {
     field: &'a dyn ScalarField,
     lattice: &'a Lattice,
     trust: Option<&'a PointBuckets>,
-    values: KeyMap<f64>,
+    values: CellMap<f64>,
     counter: &'a mut EvalCounter,
 }
 
@@ -139,7 +141,7 @@ impl Follower<'_> {
         let mut missing: Vec<u64> = Vec::new();
         for &cell in cells {
             for n in cell_corners(cell) {
-                let key = pack(n);
+                let key = pack_cell(n);
                 if !self.values.contains_key(&key) {
                     missing.push(key);
                 }
@@ -152,7 +154,7 @@ impl Follower<'_> {
         }
         let points: Vec<DVec3> = missing
             .iter()
-            .map(|&k| self.lattice.node_position(unpack(k)))
+            .map(|&k| self.lattice.node_position(unpack_cell(k)))
             .collect();
         let values = super::lattice::evaluate_values(self.field, &points, self.counter)?;
         self.values.reserve(missing.len());
@@ -163,11 +165,11 @@ impl Follower<'_> {
     }
 
     fn corner_values(&self, cell: Ijk) -> [f64; 8] {
-        cell_corners(cell).map(|n| self.values[&pack(n)])
+        cell_corners(cell).map(|n| self.values[&pack_cell(n)])
     }
 
     /// Grows from `frontier` (crossed, trusted cells already in `visited`) through straddling faces.
-    fn grow(&mut self, level: f64, mut frontier: Vec<Ijk>, visited: &mut KeySet) -> Result<()> {
+    fn grow(&mut self, level: f64, mut frontier: Vec<Ijk>, visited: &mut CellSet) -> Result<()> {
         while !frontier.is_empty() {
             self.ensure_corners(&frontier)?;
             let mut next = Vec::new();
@@ -187,17 +189,17 @@ impl Follower<'_> {
                         let mut neighbour = cell;
                         neighbour[axis] += if side == 1 { 1 } else { -1 };
                         if !self.lattice.contains_cell(neighbour)
-                            || visited.contains(&pack(neighbour))
+                            || visited.contains(&pack_cell(neighbour))
                             || !trusted(self.lattice, self.trust, neighbour)
                         {
                             continue;
                         }
-                        visited.insert(pack(neighbour));
+                        visited.insert(pack_cell(neighbour));
                         next.push(neighbour);
                     }
                 }
             }
-            next.sort_unstable_by_key(|&c| pack(c));
+            next.sort_unstable_by_key(|&c| pack_cell(c));
             frontier = next;
         }
         Ok(())
@@ -219,7 +221,7 @@ pub(crate) fn follow_from_seeds(
     let mut seed_cells: Vec<u64> = seeds
         .iter()
         .filter_map(|&p| lattice.cell_of(p))
-        .map(pack)
+        .map(pack_cell)
         .collect();
     seed_cells.sort_unstable();
     seed_cells.dedup();
@@ -227,7 +229,7 @@ pub(crate) fn follow_from_seeds(
     // around the kept seed reaches every cell of its block, so the thinning loses no crossed cell of the
     // block, and the cost follows the blocks, not the samples. Keeps the lowest cell of each block.
     let block = search_radius_cells as i32 + 1;
-    let block_key = |k: u64| pack(unpack(k).map(|c| c / block));
+    let block_key = |k: u64| pack_cell(unpack_cell(k).map(|c| c / block));
     seed_cells.sort_unstable_by_key(|&k| (block_key(k), k));
     seed_cells.dedup_by_key(|k| block_key(*k));
     seed_cells.sort_unstable();
@@ -235,14 +237,14 @@ pub(crate) fn follow_from_seeds(
         field,
         lattice,
         trust,
-        values: KeyMap::default(),
+        values: CellMap::default(),
         counter,
     };
     let radius = search_radius_cells as i32;
     let mut per_level = Vec::with_capacity(levels.len());
     for &level in levels {
-        let mut visited = KeySet::default();
-        let mut pending: Vec<Ijk> = seed_cells.iter().map(|&k| unpack(k)).collect();
+        let mut visited = CellSet::default();
+        let mut pending: Vec<Ijk> = seed_cells.iter().map(|&k| unpack_cell(k)).collect();
         for r in 0..=radius {
             // Seeds with the surface already found within distance r need no search.
             pending.retain(|&s| !near_visited(s, r, &visited));
@@ -268,16 +270,16 @@ pub(crate) fn follow_from_seeds(
                     }
                 });
             }
-            candidates.sort_unstable_by_key(|&c| pack(c));
+            candidates.sort_unstable_by_key(|&c| pack_cell(c));
             candidates.dedup();
             follower.ensure_corners(&candidates)?;
             let mut found = Vec::new();
             for &c in &candidates {
-                if !visited.contains(&pack(c))
+                if !visited.contains(&pack_cell(c))
                     && straddles(&follower.corner_values(c), level)
                     && trusted(lattice, trust, c)
                 {
-                    visited.insert(pack(c));
+                    visited.insert(pack_cell(c));
                     found.push(c);
                 }
             }
@@ -309,7 +311,7 @@ fn for_each_ring_cell(centre: Ijk, r: i32, mut f: impl FnMut(Ijk)) {
     }
 }
 
-fn near_visited(centre: Ijk, r: i32, visited: &KeySet) -> bool {
+fn near_visited(centre: Ijk, r: i32, visited: &CellSet) -> bool {
     if visited.is_empty() {
         return false;
     }
@@ -317,10 +319,7 @@ fn near_visited(centre: Ijk, r: i32, visited: &KeySet) -> bool {
         for dy in -r..=r {
             for dx in -r..=r {
                 let c = add(centre, [dx, dy, dz]);
-                if c.iter()
-                    .all(|&x| (0..1 << super::lattice::AXIS_BITS).contains(&x))
-                    && visited.contains(&pack(c))
-                {
+                if fits_cell_key(c) && visited.contains(&pack_cell(c)) {
                     return true;
                 }
             }

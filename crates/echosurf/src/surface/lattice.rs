@@ -1,38 +1,18 @@
-//! The cubic lattice: integer node/cell coordinates, packed keys, a fast hash for them and batched field
-//! evaluation.
-
-use std::collections::{HashMap, HashSet};
-use std::hash::{BuildHasherDefault, Hasher};
+//! The cubic lattice: integer node/cell coordinates (packed into keys by [`crate::spatial::cell_grid`])
+//! and batched field evaluation.
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use super::ScalarField;
+use crate::spatial::cell_grid::CELL_AXIS_MAX;
 use crate::{Error, Result};
 
-/// Bits per axis in a packed lattice key; a lattice may have at most `2^20 - 1` cells per axis.
-pub(crate) const AXIS_BITS: u32 = 20;
-pub(crate) const MAX_CELLS_PER_AXIS: i64 = (1 << AXIS_BITS) - 2;
+/// A lattice may have at most this many cells per axis (its nodes must fit in a packed cell key).
+pub(crate) const MAX_CELLS_PER_AXIS: i64 = CELL_AXIS_MAX - 1;
 
 /// Integer lattice coordinates (node or cell; a cell is named by its lowest corner node).
 pub(crate) type Ijk = [i32; 3];
-
-/// Packs non-negative lattice coordinates into one integer; sorting packed keys orders by z, then y, then x.
-#[inline]
-pub(crate) fn pack(n: Ijk) -> u64 {
-    debug_assert!(n.iter().all(|&c| c >= 0 && (c as i64) < (1 << AXIS_BITS)));
-    n[0] as u64 | (n[1] as u64) << AXIS_BITS | (n[2] as u64) << (2 * AXIS_BITS)
-}
-
-#[inline]
-pub(crate) fn unpack(key: u64) -> Ijk {
-    let mask = (1u64 << AXIS_BITS) - 1;
-    [
-        (key & mask) as i32,
-        ((key >> AXIS_BITS) & mask) as i32,
-        ((key >> (2 * AXIS_BITS)) & mask) as i32,
-    ]
-}
 
 /// Offset of cube corner `c` (bit 0 = x, bit 1 = y, bit 2 = z).
 #[inline]
@@ -44,30 +24,6 @@ pub(crate) fn corner_offset(c: usize) -> Ijk {
 pub(crate) fn add(a: Ijk, b: Ijk) -> Ijk {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
-
-/// Multiplicative hash for packed integer keys (the std SipHash costs more than the lookups it guards;
-/// keys are not attacker-controlled).
-#[derive(Debug, Default, Clone, Copy)]
-pub(crate) struct KeyHasher(u64);
-
-impl Hasher for KeyHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = (self.0.rotate_left(5) ^ b as u64).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-        }
-    }
-    fn write_u64(&mut self, key: u64) {
-        // Fibonacci hashing, folded so the high bits reach the low bits hashbrown uses.
-        let h = key.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        self.0 = h ^ (h >> 29);
-    }
-}
-
-pub(crate) type KeyMap<V> = HashMap<u64, V, BuildHasherDefault<KeyHasher>>;
-pub(crate) type KeySet = HashSet<u64, BuildHasherDefault<KeyHasher>>;
 
 /// The cubic lattice covering the domain box (rounded up to whole cells).
 #[derive(Debug, Clone, Copy)]
@@ -202,14 +158,6 @@ pub(crate) fn evaluate_gradients(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn pack_roundtrips_and_orders_z_major() {
-        let a = [5, 7, 9];
-        assert_eq!(unpack(pack(a)), a);
-        assert!(pack([1000, 0, 0]) < pack([0, 1, 0]));
-        assert!(pack([0, 1000, 0]) < pack([0, 0, 1]));
-    }
 
     #[test]
     fn lattice_rejects_bad_parameters() {

@@ -11,9 +11,9 @@ use std::sync::OnceLock;
 
 use glam::DVec3;
 
-use super::lattice::KeyMap;
 use super::rmt::EDGE_T_MARGIN;
 use crate::mesh::Mesh;
+use crate::spatial::cell_grid::CellMap;
 use crate::{Error, Result};
 
 /// The 12 cube edges as corner pairs (corner bits: x = 1, y = 2, z = 4), lower corner first.
@@ -159,7 +159,7 @@ pub(crate) fn marching_cubes(
     }
     let table = case_table();
     let index = |i: usize, j: usize, k: usize| i + dims[0] * (j + dims[1] * k);
-    let mut edge_vertex: KeyMap<u32> = KeyMap::default();
+    let mut edge_vertex: CellMap<u32> = CellMap::default();
     let mut gradients: Vec<DVec3> = Vec::new();
     for k in 0..dims[2] - 1 {
         for j in 0..dims[1] - 1 {

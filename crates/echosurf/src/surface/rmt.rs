@@ -10,7 +10,8 @@
 
 use glam::DVec3;
 
-use super::lattice::{Ijk, KeyMap, Lattice, add, corner_offset, pack};
+use super::lattice::{Ijk, Lattice, add, corner_offset};
+use crate::spatial::cell_grid::{CellMap, pack_cell, unpack_cell};
 
 /// The Kuhn tetrahedra as cube-corner bitmasks along a monotone path 0 -> 7.
 pub(crate) const KUHN_TETS: [[usize; 4]; 6] = [
@@ -63,7 +64,7 @@ pub(crate) fn cluster_key(q: DVec3) -> u64 {
         };
         r[axis] += if err[axis] >= 0.0 { 1.0 } else { -1.0 };
     }
-    pack([r.x as i32 + 1, r.y as i32 + 1, r.z as i32 + 1])
+    pack_cell([r.x as i32 + 1, r.y as i32 + 1, r.z as i32 + 1])
 }
 
 /// Marching tetrahedra over `cells` (packed keys, sorted: vertex numbering follows this order).
@@ -76,10 +77,10 @@ pub(crate) fn march_tetrahedra(
     value_at: impl Fn(Ijk) -> f64,
 ) -> RawSurface {
     let mut raw = RawSurface::default();
-    let mut edge_vertex: KeyMap<u32> = KeyMap::default();
+    let mut edge_vertex: CellMap<u32> = CellMap::default();
     edge_vertex.reserve(cells.len() * 3);
     for &cell_key in cells {
-        let cell = super::lattice::unpack(cell_key);
+        let cell = unpack_cell(cell_key);
         let corners: [Ijk; 8] = std::array::from_fn(|c| add(cell, corner_offset(c)));
         let values: [f64; 8] = std::array::from_fn(|c| value_at(corners[c]));
         if values.iter().any(|v| v.is_nan()) {
@@ -99,7 +100,7 @@ pub(crate) fn march_tetrahedra(
             // is the edge direction and a the lower node).
             let mut vertex = |a: usize, b: usize| -> u32 {
                 let (a, b) = if a < b { (a, b) } else { (b, a) };
-                let key = pack(corners[a]) << 3 | (b - a) as u64;
+                let key = pack_cell(corners[a]) << 3 | (b - a) as u64;
                 *edge_vertex.entry(key).or_insert_with(|| {
                     let (va, vb) = (values[a], values[b]);
                     let t = ((level - va) / (vb - va)).clamp(EDGE_T_MARGIN, 1.0 - EDGE_T_MARGIN);
@@ -199,7 +200,7 @@ mod tests {
                     }
                 }
             }
-            assert_eq!(cluster_key(q), pack(best.1), "{q}");
+            assert_eq!(cluster_key(q), pack_cell(best.1), "{q}");
         }
     }
 

@@ -1,8 +1,10 @@
-//! Points in a uniform bucket grid, shared by the stages: "is this point within `radius` of any data
-//! point?" (the surfacing's region of trust) and "every point within `radius`" (the oriented-point
-//! sheet, and which echoes back a mesh piece).
+//! Points in a uniform bucket grid (buckets sorted by their packed cell key), shared by the stages: "is
+//! this point within `radius` of any data point?" (the surfacing's region of trust) and "every point
+//! within `radius`" (the oriented-point sheet, and which echoes back a mesh piece).
 
 use glam::DVec3;
+
+use super::cell_grid::{CELL_AXIS_MAX, pack_cell};
 
 /// Points bucketed into cubes of side `radius`: a query looks at the 27 buckets around the point.
 /// Points are stored sorted by bucket key, so the structure is two flat arrays.
@@ -18,12 +20,10 @@ pub(crate) struct PointBuckets {
     original: Vec<u32>,
 }
 
-const BUCKET_BITS: u32 = 21;
-const BUCKET_MAX: i64 = (1 << BUCKET_BITS) - 1;
-
 impl PointBuckets {
-    /// `None` when there are no (finite) trust points: no clipping. Bucket coordinates beyond 2^21 are
-    /// clamped (they only merge far buckets, which stays correct since points are compared exactly).
+    /// `None` when there are no (finite) trust points: no clipping. Bucket coordinates beyond
+    /// [`CELL_AXIS_MAX`] are clamped (they only merge far buckets, which stays correct since points
+    /// are compared exactly).
     pub fn new(points: &[DVec3], radius_mm: f64) -> Option<PointBuckets> {
         let finite: Vec<(u32, DVec3)> = points
             .iter()
@@ -64,11 +64,11 @@ impl PointBuckets {
 
     fn bucket(&self, p: DVec3) -> [i64; 3] {
         let q = (p - self.origin_mm) / self.radius_mm;
-        [q.x, q.y, q.z].map(|c| (c.floor() as i64).clamp(0, BUCKET_MAX))
+        [q.x, q.y, q.z].map(|c| (c.floor() as i64).clamp(0, CELL_AXIS_MAX))
     }
 
     fn key(&self, b: [i64; 3]) -> u64 {
-        b[0] as u64 | (b[1] as u64) << BUCKET_BITS | (b[2] as u64) << (2 * BUCKET_BITS)
+        pack_cell(b.map(|c| c as i32))
     }
 
     /// Whether some trust point lies within the radius of `p` (inclusive).
@@ -95,11 +95,11 @@ impl PointBuckets {
         // The three buckets along x of one (y, z) row have consecutive keys, so their points are one
         // contiguous run: one search per row instead of one per bucket, and the same visiting order.
         let x_lo = (b[0] - 1).max(0);
-        let x_hi = (b[0] + 1).min(BUCKET_MAX);
+        let x_hi = (b[0] + 1).min(CELL_AXIS_MAX);
         for dz in -1..=1 {
             for dy in -1..=1 {
                 let (y, z) = (b[1] + dy, b[2] + dz);
-                if !(0..=BUCKET_MAX).contains(&y) || !(0..=BUCKET_MAX).contains(&z) {
+                if !(0..=CELL_AXIS_MAX).contains(&y) || !(0..=CELL_AXIS_MAX).contains(&z) {
                     continue;
                 }
                 let (lo, hi) = (self.key([x_lo, y, z]), self.key([x_hi, y, z]));
