@@ -8,7 +8,7 @@
 use criterion::{Criterion, criterion_group, criterion_main};
 use echosurf::pipeline::{ExtractOptions, extract};
 use echosurf::progress::NoProgress;
-use echosurf::simulate::{SimulationOptions, simulate};
+use echosurf_sim::{SimulationOptions, simulate};
 
 fn extract_duck(c: &mut Criterion) {
     let sim = simulate(&SimulationOptions::default(), &NoProgress).expect("simulate duck");

@@ -3,8 +3,7 @@
 use criterion::{Criterion, criterion_group, criterion_main};
 use echosurf::io::{self, ReferenceChoice};
 
-#[path = "../tests/common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::real_data;
 use real_data::real;
 
 fn bench_read(c: &mut Criterion) {

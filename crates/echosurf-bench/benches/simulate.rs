@@ -3,7 +3,7 @@
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use echosurf::progress::NoProgress;
-use echosurf::simulate::{PhantomKind, SimulationOptions, simulate_sweeps};
+use echosurf_sim::{PhantomKind, SimulationOptions, simulate_sweeps};
 
 fn frames_per_second(c: &mut Criterion) {
     let mut group = c.benchmark_group("simulate");

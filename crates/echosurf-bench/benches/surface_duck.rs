@@ -10,8 +10,8 @@ use echosurf::pipeline::{
 };
 use echosurf::progress::NoProgress;
 use echosurf::resources::StageMeter;
-use echosurf::simulate::{SimulationOptions, simulate};
 use echosurf::surface::{SurfaceOptions, extract_surfaces_with_stats};
+use echosurf_sim::{SimulationOptions, simulate};
 
 fn surface_duck(c: &mut Criterion) {
     let sim = simulate(&SimulationOptions::default(), &NoProgress).expect("simulate duck");

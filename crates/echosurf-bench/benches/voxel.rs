@@ -6,8 +6,7 @@ use echosurf::io::{self, ReferenceChoice};
 use echosurf::progress::NoProgress;
 use echosurf::voxel::{HoleFilling, Interpolation, options_from_config_xml, reconstruct_volume};
 
-#[path = "../tests/common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::real_data;
 use real_data::real;
 
 fn bench_reconstruct(c: &mut Criterion) {

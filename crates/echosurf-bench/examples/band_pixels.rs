@@ -1,4 +1,4 @@
-//! Writes issue-27 band pixels (see `echosurf::rbf::band_pixels`) as a PLY point cloud with a float
+//! Writes issue-27 band pixels (see `echosurf_bench::band_pixels`) as a PLY point cloud with a float
 //! `intensity` property, for `echosurf fit`:
 //! `cargo run --release --example band_pixels -- OUT.ply COUNT [SEQUENCE.mha CONFIG.xml]`
 //! (without a sequence: our own duck simulator, two sweeps of 60 frames, true poses). `SEED` (default 1).
@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use echosurf::io::{self, PointCloud, ReferenceChoice};
-use echosurf::rbf::{band_pixels, simulated_band_pixels};
+use echosurf_bench::{band_pixels, simulated_band_pixels};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();

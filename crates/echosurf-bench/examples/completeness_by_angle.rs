@@ -10,7 +10,7 @@
 use echosurf::metrics::{CompareOptions, compare_meshes, triangle_mask};
 use echosurf::pipeline::{self, ExtractOptions};
 use echosurf::progress::NoProgress;
-use echosurf::simulate::{PhantomKind, SimulationOptions, simulate};
+use echosurf_sim::{PhantomKind, SimulationOptions, simulate};
 use glam::DVec3;
 
 fn main() -> echosurf::Result<()> {

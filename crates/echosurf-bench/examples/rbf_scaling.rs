@@ -1,7 +1,8 @@
 //! Fit/evaluate timings on ultrasound-like samples: `cargo run --release --example rbf_scaling -- 10000 100000`.
 //! Environment: `SOLVER` = auto (default) | fast | pu | direct, `W`, `ACC`, `EPS`, `LEAF`, `OVERLAP`, `MINOV`.
 
-use echosurf::rbf::{FitOptions, SolverChoice, bench_fit_scaling};
+use echosurf::rbf::{FitOptions, SolverChoice};
+use echosurf_bench::bench_fit_scaling;
 
 fn main() -> echosurf::Result<()> {
     let sizes: Vec<usize> = std::env::args()

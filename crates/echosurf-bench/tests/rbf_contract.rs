@@ -2,10 +2,14 @@
 //! at every sample, checked by an evaluation written here from the model's definition (no BVH, no
 //! treecode, a sum over every centre), or refuses with the achieved figure.
 
-use super::*;
-use crate::progress::NoProgress;
-use crate::surface::{ScalarField, SurfaceDomain, SurfaceOptions, extract_surfaces_with_stats};
-use rand::Rng;
+use echosurf::progress::NoProgress;
+use echosurf::rbf::{FitOptions, SolverChoice, definition_max_misfit, fit};
+use echosurf::surface::{ScalarField, SurfaceDomain, SurfaceOptions, extract_surfaces_with_stats};
+use echosurf_bench::simulated_band_pixels;
+use glam::DVec3;
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 /// `count` (at most 12,000) band pixels of a short simulated duck sweep (two sweeps of 12 frames); the
 /// sweep is simulated once per test process.
@@ -150,17 +154,6 @@ fn an_accuracy_out_of_reach_is_refused_with_the_achieved_figure() {
     )
     .expect_err("one iteration cannot reach 0.01");
     assert!(err.to_string().contains("max residual"), "{err}");
-}
-
-#[test]
-fn the_dense_solve_refuses_what_does_not_fit_in_memory() {
-    assert!(check_dense_memory(2_000).is_ok());
-    let err = check_dense_memory(200_004).expect_err("640 GB");
-    let text = err.to_string();
-    assert!(
-        text.contains("640.0 GB") && text.contains("--solver pu"),
-        "{text}"
-    );
 }
 
 /// A clean echo shell: samples within 3 mm of a sphere of radius 12 mm, grey level of a Gaussian echo

@@ -34,10 +34,10 @@ pub use output::{
 pub use phantom::{Phantom, PhantomKind, build_phantom, phantom_sdf};
 pub use sweep::{HandMotion, SweepSpec};
 
-use crate::io::{Calibration, FrameTransform, PixelData, TrackedFrame, TrackedSequence};
-use crate::mesh::Mesh;
-use crate::progress::Progress;
-use crate::{Error, Result};
+use echosurf::io::{Calibration, FrameTransform, PixelData, TrackedFrame, TrackedSequence};
+use echosurf::mesh::Mesh;
+use echosurf::progress::Progress;
+use echosurf::{Error, Result};
 
 /// Everything that defines a simulation. Same options (including `seed`) => identical output bytes.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -426,11 +426,12 @@ mod tests {
     fn bone_truth_is_the_probe_side_and_its_sweeps_look_down() {
         let phantom = build_phantom(&PhantomKind::Bone).unwrap();
         assert!(phantom.probe_side_only());
-        let mut truth = output::truth_meshes(phantom.as_ref(), 1.0, &crate::progress::NoProgress)
-            .unwrap()
-            .pop()
-            .unwrap()
-            .1;
+        let mut truth =
+            output::truth_meshes(phantom.as_ref(), 1.0, &echosurf::progress::NoProgress)
+                .unwrap()
+                .pop()
+                .unwrap()
+                .1;
         let closed_area = truth.area_mm2();
         let (lo, _) = truth.bounds().unwrap();
         // The closed truth's winding is outward (positive enclosed volume), so "up" by winding is the
@@ -457,7 +458,7 @@ mod tests {
             acoustics: PhysicsPreset::Bone.acoustics(),
             ..Default::default()
         };
-        let sim = simulate_sweeps(&options, &crate::progress::NoProgress).unwrap();
+        let sim = simulate_sweeps(&options, &echosurf::progress::NoProgress).unwrap();
         assert!(sim.sweep_specs.iter().all(|s| s.tilt_deg == 0.0));
     }
 }

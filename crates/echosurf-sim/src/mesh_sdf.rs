@@ -6,7 +6,7 @@ use std::collections::HashMap;
 
 use glam::DVec3;
 
-use crate::mesh::Mesh;
+use echosurf::mesh::Mesh;
 
 /// Which part of a triangle the closest point lies on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -302,7 +302,7 @@ impl MeshSdf {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::simulate::phantom::Phantom;
+    use crate::phantom::Phantom;
 
     /// A UV sphere of radius r: closed, outward-wound.
     pub(crate) fn uv_sphere(r: f64, rings: u32, segments: u32) -> Mesh {

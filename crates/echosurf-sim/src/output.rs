@@ -7,11 +7,11 @@ use glam::DVec3;
 
 use super::phantom::Phantom;
 use super::{Simulation, SimulationOptions};
-use crate::io::sequence::mat4_to_row_major;
-use crate::mesh::Mesh;
-use crate::progress::Progress;
-use crate::surface::{FnField, SurfaceDomain, SurfaceOptions, extract_surfaces};
-use crate::{Error, Result};
+use echosurf::io::sequence::mat4_to_row_major;
+use echosurf::mesh::Mesh;
+use echosurf::progress::Progress;
+use echosurf::surface::{FnField, SurfaceDomain, SurfaceOptions, extract_surfaces};
+use echosurf::{Error, Result};
 
 /// Paths written by [`write_simulation`].
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -142,7 +142,7 @@ pub fn write_simulation(
         &SimulationNames::plain(name),
         sim,
         options,
-        crate::io::Space::Ras,
+        echosurf::io::Space::Ras,
     )
 }
 
@@ -152,7 +152,7 @@ pub fn write_simulation_as(
     names: &SimulationNames,
     sim: &Simulation,
     options: &SimulationOptions,
-    truth_space: crate::io::Space,
+    truth_space: echosurf::io::Space,
 ) -> Result<SimulationFiles> {
     let name = names.name.as_str();
     if name.is_empty() || name.contains(['/', '\\']) {
@@ -162,15 +162,15 @@ pub fn write_simulation_as(
     }
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let sequence = names.sequence(dir);
-    crate::io::write_sequence(&sequence, &sim.sequence, options.compress)?;
+    echosurf::io::write_sequence(&sequence, &sim.sequence, options.compress)?;
     let calibration = names.calibration(dir);
-    crate::io::write_calibration(&calibration, &sim.calibration_written)?;
+    echosurf::io::write_calibration(&calibration, &sim.calibration_written)?;
     let mut truth = vec![names.truth(dir)];
-    crate::io::write_mesh_in(&truth[0], &merged_truth(&sim.truth), truth_space)?;
+    echosurf::io::write_mesh_in(&truth[0], &merged_truth(&sim.truth), truth_space)?;
     if sim.truth.len() > 1 {
         for (surface, mesh) in &sim.truth {
             let path = names.truth_surface(dir, surface);
-            crate::io::write_mesh_in(&path, mesh, truth_space)?;
+            echosurf::io::write_mesh_in(&path, mesh, truth_space)?;
             truth.push(path);
         }
     }
@@ -178,7 +178,7 @@ pub fn write_simulation_as(
     let json = description_json(name, sim, options, &truth, truth_space);
     let text = serde_json::to_string_pretty(&json)
         .map_err(|e| Error::InvalidInput(format!("phantom.json: {e}")))?;
-    crate::io::atomic::write_bytes_atomic(&description, (text + "\n").as_bytes())?;
+    echosurf::io::atomic::write_bytes_atomic(&description, (text + "\n").as_bytes())?;
     Ok(SimulationFiles {
         sequence,
         calibration,
@@ -192,7 +192,7 @@ fn description_json(
     sim: &Simulation,
     options: &SimulationOptions,
     truth_files: &[PathBuf],
-    truth_space: crate::io::Space,
+    truth_space: echosurf::io::Space,
 ) -> serde_json::Value {
     let file_name = |p: &PathBuf| {
         p.file_name()
@@ -231,7 +231,7 @@ fn description_json(
 pub fn write_preview(path: &Path, sim: &Simulation, count: usize) -> Result<()> {
     let seq = &sim.sequence;
     let n = seq.frames.len();
-    let crate::io::PixelData::U8(pixels) = &seq.pixels else {
+    let echosurf::io::PixelData::U8(pixels) = &seq.pixels else {
         return Err(Error::InvalidInput("preview needs 8-bit frames".into()));
     };
     if n == 0 || count == 0 {
@@ -273,7 +273,7 @@ pub fn write_preview(path: &Path, sim: &Simulation, count: usize) -> Result<()> 
             image[dst..dst + w].copy_from_slice(src);
         }
     }
-    crate::io::atomic::write_png_atomic(
+    echosurf::io::atomic::write_png_atomic(
         path,
         total_w as u32,
         total_h as u32,

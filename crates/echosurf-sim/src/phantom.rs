@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DVec3};
 
 use super::mesh_sdf::MeshSdf;
-use crate::mesh::Mesh;
-use crate::{Error, Result};
+use echosurf::mesh::Mesh;
+use echosurf::{Error, Result};
 
 /// Which phantom to simulate.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -532,9 +532,9 @@ impl Phantom for MeshSdf {
 }
 
 fn mesh_phantom(path: &Path) -> Result<MeshSdf> {
-    let mesh = crate::io::read_mesh(path)?;
+    let mesh = echosurf::io::read_mesh(path)?;
     MeshSdf::new(mesh)
-        .map_err(|message| Error::format(path, crate::FormatProblem::BadValue, message))
+        .map_err(|message| Error::format(path, echosurf::FormatProblem::BadValue, message))
 }
 
 #[cfg(test)]

@@ -373,7 +373,7 @@ impl ObjectMotion {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::simulate::phantom::{PhantomKind, build_phantom};
+    use crate::phantom::{PhantomKind, build_phantom};
     use rand::SeedableRng;
 
     #[test]

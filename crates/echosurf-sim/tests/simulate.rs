@@ -3,8 +3,8 @@
 
 use echosurf::io::{PixelData, read_calibration, read_mesh, read_sequence};
 use echosurf::progress::NoProgress;
-use echosurf::simulate::phantom::{Sdf, SolidPhantom};
-use echosurf::simulate::{
+use echosurf_sim::phantom::{Sdf, SolidPhantom};
+use echosurf_sim::{
     Acoustics, FrameFormer, ImageGrid, Phantom, PhantomKind, SimulationOptions, simulate,
     simulate_sweeps, write_simulation,
 };
@@ -53,7 +53,7 @@ impl Phantom for HalfSpace {
     fn bounds(&self) -> (DVec3, DVec3) {
         (DVec3::splat(-1e3), DVec3::splat(1e3))
     }
-    fn surfaces(&self) -> Vec<(String, &echosurf::simulate::phantom::SurfaceFn)> {
+    fn surfaces(&self) -> Vec<(String, &echosurf_sim::phantom::SurfaceFn)> {
         Vec::new()
     }
 }
@@ -229,11 +229,10 @@ fn files_read_back_with_the_project_readers() {
 #[test]
 fn truth_surfaces_are_closed_manifolds_on_the_phantom() {
     for kind in [PhantomKind::Duck, PhantomKind::Torus, PhantomKind::Hand] {
-        let phantom = echosurf::simulate::build_phantom(&kind).unwrap();
+        let phantom = echosurf_sim::build_phantom(&kind).unwrap();
         let resolution = if kind == PhantomKind::Hand { 1.5 } else { 0.8 };
         let truth =
-            echosurf::simulate::output::truth_meshes(phantom.as_ref(), resolution, &NoProgress)
-                .unwrap();
+            echosurf_sim::output::truth_meshes(phantom.as_ref(), resolution, &NoProgress).unwrap();
         assert_eq!(truth.len(), if kind == PhantomKind::Duck { 2 } else { 1 });
         for (name, mesh) in &truth {
             let topology = mesh.topology();
@@ -327,14 +326,13 @@ fn bad_options_are_rejected_with_a_message() {
 #[test]
 fn mesh_phantom_from_file_uses_its_own_mesh_as_truth() {
     // Write the surfacer's sphere of the analytic phantom, then simulate it as a mesh phantom.
-    let sphere = echosurf::simulate::build_phantom(&PhantomKind::Sphere).unwrap();
-    let truth =
-        echosurf::simulate::output::truth_meshes(sphere.as_ref(), 1.0, &NoProgress).unwrap();
+    let sphere = echosurf_sim::build_phantom(&PhantomKind::Sphere).unwrap();
+    let truth = echosurf_sim::output::truth_meshes(sphere.as_ref(), 1.0, &NoProgress).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("ball.ply");
     echosurf::io::write_mesh(&path, &truth[0].1).unwrap();
     let kind = PhantomKind::Mesh(path);
-    let mesh_phantom = echosurf::simulate::build_phantom(&kind).unwrap();
+    let mesh_phantom = echosurf_sim::build_phantom(&kind).unwrap();
     for p in [DVec3::new(0.0, 0.0, 20.0), DVec3::new(3.0, -2.0, 1.0)] {
         // The 1 mm lattice mesh is within ~0.05 mm of the true sphere (chords of a 15 mm radius).
         assert!((mesh_phantom.distance(p) - sphere.distance(p)).abs() < 0.1);
@@ -348,7 +346,7 @@ fn mesh_phantom_from_file_uses_its_own_mesh_as_truth() {
 fn object_motion_moves_the_echoes_but_not_the_recorded_poses() {
     let still = small_options(PhantomKind::Sphere);
     let moving = SimulationOptions {
-        motion: echosurf::simulate::HandMotion {
+        motion: echosurf_sim::HandMotion {
             object_motion_mm: 2.0,
             ..still.motion
         },

@@ -38,6 +38,7 @@ pub struct Case {
 }
 
 /// The valid companions the CLI cases need (config, sequence, mesh, cloud), written into `dir`.
+#[derive(Debug)]
 pub struct Companions {
     pub config: PathBuf,
     pub sequence: PathBuf,

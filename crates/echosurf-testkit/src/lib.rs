@@ -1,6 +1,7 @@
-//! Seed files for the mutation harness and the hostile corpus, generated at test time from the real PLUS
-//! data in `../shared/data/real/` (cut down so thousands of parses stay fast) and from our own writers.
-#![allow(dead_code)]
+//! What echosurf's tests and benches share: where the real PLUS data is ([`real_data`]), decoding the PNGs
+//! echosurf writes ([`png_pixels`]), and seed files for the mutation harness and the hostile corpus
+//! ([`corpus`]), generated at test time from the real PLUS data in `../shared/data/real/` (cut down so
+//! thousands of parses stay fast) and from our own writers.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -11,6 +12,7 @@ use echosurf::mesh::Mesh;
 use glam::DVec3;
 
 pub mod corpus;
+pub mod png_pixels;
 
 pub mod real_data;
 pub use real_data::real;

@@ -1,5 +1,4 @@
-//! Decoding the 8-bit PNGs echosurf writes, in tests (`#[path]`-included by the unit and CLI tests that
-//! check its pictures pixel by pixel).
+//! Decoding the 8-bit PNGs echosurf writes, for the tests that check its pictures pixel by pixel.
 
 /// (width, height, pixels) of an 8-bit PNG of colour type `colour`; panics on anything else.
 pub fn read_png(path: &std::path::Path, colour: png::ColorType) -> (u32, u32, Vec<u8>) {
@@ -14,13 +13,11 @@ pub fn read_png(path: &std::path::Path, colour: png::ColorType) -> (u32, u32, Ve
 }
 
 /// An 8-bit grey PNG.
-#[allow(dead_code)] // not every including test reads grey pictures
 pub fn read_grey_png(path: &std::path::Path) -> (u32, u32, Vec<u8>) {
     read_png(path, png::ColorType::Grayscale)
 }
 
 /// An 8-bit RGB PNG.
-#[allow(dead_code)] // not every including test reads colour pictures
 pub fn read_rgb_png(path: &std::path::Path) -> (u32, u32, Vec<u8>) {
     read_png(path, png::ColorType::Rgb)
 }

@@ -1,7 +1,6 @@
 //! Where the real PLUS recordings are: `shared/data/real` beside the repository (CI layout), or in the
-//! nearest ancestor folder that has it (helper worktrees live deeper than the main checkout). One file
-//! for every test and bench of both crates (`#[path]`-included where `tests/common` is not a module).
-#![allow(dead_code)]
+//! nearest ancestor folder that has it (helper worktrees live deeper than the main checkout). One place
+//! for every test and bench of the workspace.
 
 use std::path::{Path, PathBuf};
 

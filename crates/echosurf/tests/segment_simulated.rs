@@ -3,9 +3,7 @@
 use echosurf::io::{FramePose, PoseResolution};
 use echosurf::progress::NoProgress;
 use echosurf::segment::{BandMasks, InitialBand, SegmentOptions, segment_sequence};
-use echosurf::simulate::{
-    PhantomKind, Simulation, SimulationOptions, build_phantom, simulate_sweeps,
-};
+use echosurf_sim::{PhantomKind, Simulation, SimulationOptions, build_phantom, simulate_sweeps};
 use glam::DVec3;
 
 /// One pass over the phantom at 0.2 mm/px, without tracking errors: `frames` frames of
