@@ -1,4 +1,4 @@
-//! The hostile corpus (generated from the real PLUS files by `crates/echosurf/tests/common/corpus.rs`)
+//! The hostile corpus (generated from the real PLUS files by `crates/echosurf-testkit/src/corpus.rs`)
 //! through the `echosurf` binary: every case must exit non-zero, say which file and what is wrong, never
 //! panic, write no output, finish quickly and stay within a memory bound. Wall time and peak RSS of every
 //! case are printed (`cargo test -p echosurf-cli --test hostile_corpus -- --nocapture`).

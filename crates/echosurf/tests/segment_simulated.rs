@@ -1,4 +1,5 @@
-//! Band segmentation on simulated sweeps (crate::simulate) against the phantom's exact distance field.
+//! Band segmentation on simulated sweeps (the `echosurf-sim` crate) against the phantom's exact distance
+//! field.
 
 use echosurf::io::{FramePose, PoseResolution};
 use echosurf::progress::NoProgress;
