@@ -31,3 +31,21 @@ pub fn real(name: &str) -> PathBuf {
     );
     path
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A missing recording stops the test with its full path, not later on an unreadable file.
+    #[test]
+    fn a_missing_recording_panics_naming_its_path() {
+        let name = "no-such-recording.igs.mha";
+        let panic = std::panic::catch_unwind(|| real(name)).expect_err("a missing file must panic");
+        let message = panic.downcast_ref::<String>().expect("a formatted message");
+        let path = real_dir().join(name);
+        assert!(
+            message.starts_with(&format!("real PLUS data missing: {}", path.display())),
+            "{message}"
+        );
+    }
+}
