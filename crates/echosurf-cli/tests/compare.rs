@@ -6,8 +6,7 @@ use std::process::Command;
 use echosurf::mesh::Mesh;
 use glam::DVec3;
 
-#[path = "../../echosurf/tests/common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::real_data;
 use real_data::real;
 
 /// An axis-aligned box from `lo` to `hi`, outward winding, closed.

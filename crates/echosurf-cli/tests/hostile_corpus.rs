@@ -1,16 +1,15 @@
-//! The hostile corpus (generated from the real PLUS files by `crates/echosurf/tests/common/corpus.rs`)
+//! The hostile corpus (generated from the real PLUS files by `crates/echosurf-testkit/src/corpus.rs`)
 //! through the `echosurf` binary: every case must exit non-zero, say which file and what is wrong, never
 //! panic, write no output, finish quickly and stay within a memory bound. Wall time and peak RSS of every
 //! case are printed (`cargo test -p echosurf-cli --test hostile_corpus -- --nocapture`).
 
-#[path = "../../echosurf/tests/common/mod.rs"]
-mod common;
+use echosurf_testkit as testkit;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use common::corpus::{Case, Companions, Target, generate};
+use testkit::corpus::{Case, Companions, Target, generate};
 
 const BIN: &str = env!("CARGO_BIN_EXE_echosurf");
 
@@ -90,7 +89,7 @@ fn run(args: &[PathBuf], time_file: &Path) -> (std::process::Output, Option<u64>
 #[test]
 fn the_cli_refuses_every_corpus_file_quickly_and_within_memory() {
     let dir = tempfile::tempdir().unwrap();
-    let companions = common::corpus::companions(dir.path());
+    let companions = testkit::corpus::companions(dir.path());
     let cases = generate(dir.path());
     let out = dir.path().join("out");
     std::fs::create_dir(&out).unwrap();
@@ -248,7 +247,7 @@ fn outputs_never_replace_inputs_or_each_other() {
     let dir = tempfile::tempdir().unwrap();
     let copy = |name: &str| {
         let to = dir.path().join(name);
-        std::fs::copy(common::real_data::real(name), &to).unwrap();
+        std::fs::copy(testkit::real_data::real(name), &to).unwrap();
         to
     };
     let nwire = copy("NwirePhantomFreehand.igs.mha");

@@ -2,12 +2,10 @@
 
 use std::process::Output;
 
-#[path = "../../echosurf/tests/common/real_data.rs"]
-mod real_data;
-use real_data::real;
-#[path = "../../echosurf/tests/common/png_pixels.rs"]
-mod png_pixels;
+use echosurf_testkit::png_pixels;
+use echosurf_testkit::real_data;
 use png_pixels::read_grey_png;
+use real_data::real;
 
 const NN_MEAN: &str = "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml";
 

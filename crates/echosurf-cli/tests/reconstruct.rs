@@ -4,8 +4,7 @@ use std::path::Path;
 
 mod common;
 
-#[path = "../../echosurf/tests/common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::real_data;
 use real_data::real;
 
 /// `echosurf reconstruct SEQ --calibration CONFIG --out OUT EXTRA...`.

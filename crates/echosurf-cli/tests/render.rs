@@ -7,10 +7,8 @@ mod common;
 
 use echosurf::metrics::shapes::torus;
 
-#[path = "../../echosurf/tests/common/png_pixels.rs"]
-mod png_pixels;
-#[path = "../../echosurf/tests/common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::png_pixels;
+use echosurf_testkit::real_data;
 use png_pixels::read_rgb_png;
 
 /// `echosurf render MESH --out OUT EXTRA...`.

@@ -2,8 +2,7 @@
 
 use std::path::Path;
 
-#[path = "../../echosurf/tests/common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::real_data;
 use real_data::real;
 
 fn spine_args() -> Vec<String> {

@@ -12,12 +12,12 @@ use std::time::Instant;
 use echosurf::io::{ReferenceChoice, resolve_poses};
 use echosurf::pipeline::ExtractOptions;
 use echosurf::progress::NoProgress;
-use echosurf::simulate::{SimulationOptions, simulate};
 use echosurf_live::codec::{self, Image, Limits, encode_message};
 use echosurf_live::session::{
     IncrementalBands, LiveSession, SessionOptions, surface_of, update_extract_options,
     update_surface,
 };
+use echosurf_sim::{SimulationOptions, simulate};
 
 const UPDATE_EVERY: usize = 30;
 

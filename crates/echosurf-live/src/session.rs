@@ -645,17 +645,17 @@ mod tests {
         assert_eq!(due, [false, true, false, true, false]);
     }
 
-    fn small_sphere() -> echosurf::simulate::Simulation {
-        let options = echosurf::simulate::SimulationOptions {
-            phantom: echosurf::simulate::PhantomKind::Sphere,
+    fn small_sphere() -> echosurf_sim::Simulation {
+        let options = echosurf_sim::SimulationOptions {
+            phantom: echosurf_sim::PhantomKind::Sphere,
             frames_per_sweep: 20,
             sweeps: Some(1),
             width_px: 96,
             height_px: 80,
             pixel_size_mm: 0.4,
-            ..echosurf::simulate::SimulationOptions::default()
+            ..echosurf_sim::SimulationOptions::default()
         };
-        echosurf::simulate::simulate(&options, &NoProgress).unwrap()
+        echosurf_sim::simulate(&options, &NoProgress).unwrap()
     }
 
     /// The refit from bands segmented elsewhere is `extract` itself when the bands are the whole

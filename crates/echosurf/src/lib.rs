@@ -3,8 +3,10 @@
 //! Data flows one way through the stage modules:
 //! [`io`] (tracked sequences, calibration) -> [`segment`] (boundary bands) -> [`samples`] (3D points with
 //! intensity) -> [`rbf`] (one biharmonic spline fitted to all samples) -> [`surface`] (iso-surface by
-//! regularised marching tetrahedra) -> [`io`] (meshes). [`simulate`] makes test sweeps with ground truth,
-//! [`metrics`] scores meshes against truth and [`render`] draws previews. No stage calls a later one.
+//! regularised marching tetrahedra) -> [`io`] (meshes). [`metrics`] scores meshes against truth and
+//! `render` (the `render` feature) draws previews. No stage calls a later one. The simulator
+//! (`echosurf-sim`), the bench harness (`echosurf-bench`) and the test helpers (`echosurf-testkit`) are
+//! crates of their own that depend on this one.
 //!
 //! Geometry is `f64` throughout (glam `DVec3` / `DMat4`), in millimetres unless a name says otherwise.
 //!
@@ -32,7 +34,6 @@
 //! # Ok::<(), echosurf::Error>(())
 //! ```
 
-pub mod bench;
 pub mod budget;
 pub mod error;
 pub mod io;
@@ -41,11 +42,11 @@ pub mod metrics;
 pub mod pipeline;
 pub mod progress;
 pub mod rbf;
+#[cfg(feature = "render")]
 pub mod render;
 pub mod resources;
 pub mod samples;
 pub mod segment;
-pub mod simulate;
 pub mod spatial;
 pub mod surface;
 pub mod voxel;

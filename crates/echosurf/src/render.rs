@@ -115,6 +115,25 @@ pub struct ColourBar {
     pub labels: Vec<(f64, String)>,
 }
 
+/// The key to [`distance_colour`](crate::metrics::distance_colour) on `scale_mm`, for a picture: the
+/// ramp from 0 to the scale, labelled at 0, half the scale and the scale (in mm).
+pub fn distance_colour_bar(scale_mm: f64) -> ColourBar {
+    const STEPS: usize = 256;
+    let short = |x: f64| format!("{}", (x * 1000.0).round() / 1000.0);
+    ColourBar {
+        colours: (0..STEPS)
+            .map(|i| {
+                crate::metrics::distance_colour(scale_mm * i as f64 / (STEPS - 1) as f64, scale_mm)
+            })
+            .collect(),
+        labels: vec![
+            (0.0, "0".into()),
+            (0.5, short(scale_mm / 2.0)),
+            (1.0, format!("{} mm", short(scale_mm))),
+        ],
+    }
+}
+
 impl Default for RenderOptions {
     fn default() -> Self {
         RenderOptions {
@@ -833,6 +852,17 @@ fn draw_axes(buffers: &mut Buffers, camera: &Camera, ss: usize) {
 mod tests {
     use super::*;
     use crate::metrics::shapes::{icosphere, torus};
+
+    /// The key to the error map's colours: the ramp end to end, labelled in mm.
+    #[test]
+    fn the_distance_colour_bar_is_the_ramp_labelled_in_mm() {
+        use crate::metrics::distance_colour;
+        let bar = distance_colour_bar(0.6);
+        assert_eq!(bar.colours.first(), Some(&distance_colour(0.0, 0.6)));
+        assert_eq!(bar.colours.last(), Some(&distance_colour(0.6, 0.6)));
+        let labels: Vec<&str> = bar.labels.iter().map(|(_, l)| l.as_str()).collect();
+        assert_eq!(labels, ["0", "0.3", "0.6 mm"]);
+    }
 
     fn small() -> RenderOptions {
         RenderOptions {

@@ -1,6 +1,6 @@
 //! Structured mutation fuzzing of every reader of a user's file (cargo-fuzz needs nightly; this runs on the
 //! fixed stable toolchain and in CI). Seeds are real PLUS files cut down and files from our own writers
-//! (see `common::seeds`); each case applies 1-4 mutations chosen by a seeded ChaCha generator: bit flips,
+//! (see `testkit::seeds`); each case applies 1-4 mutations chosen by a seeded ChaCha generator: bit flips,
 //! byte insertion/deletion, truncation, header number swaps (huge, negative, zero, NaN, inf, empty),
 //! duplicated/removed/swapped header lines. Every parse must return Ok or an error naming the file; a
 //! panic fails the test and prints the seed and case so it can be replayed (and becomes a regression case).
@@ -8,7 +8,7 @@
 //! `ECHOSURF_FUZZ_CASES=N` (default 150 per seed) and `ECHOSURF_FUZZ_SEED=S` run longer/other campaigns:
 //! `ECHOSURF_FUZZ_CASES=20000 cargo test --release -p echosurf --test fuzz_readers`.
 
-mod common;
+use echosurf_testkit as testkit;
 
 use std::panic::{AssertUnwindSafe, catch_unwind};
 
@@ -136,7 +136,7 @@ fn mutated_files_never_panic_and_errors_name_the_file() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(9);
     let dir = tempfile::tempdir().unwrap();
-    let seeds = common::seeds(dir.path());
+    let seeds = testkit::seeds(dir.path());
     // Silence the default panic printout; panics are reported below with their case.
     let default_hook = std::panic::take_hook();
     std::panic::set_hook(Box::new(|_| {}));
@@ -147,7 +147,7 @@ fn mutated_files_never_panic_and_errors_name_the_file() {
         let name = format!("fuzz_{key}");
         let path = dir.path().join(&name);
         std::fs::write(&path, seed).unwrap();
-        if let Err(e) = common::parse(key, &path) {
+        if let Err(e) = testkit::parse(key, &path) {
             failures.push(format!("seed {key} itself does not parse: {e}"));
             continue;
         }
@@ -158,7 +158,7 @@ fn mutated_files_never_panic_and_errors_name_the_file() {
             let bytes = mutate(&mut rng, seed);
             std::fs::write(&path, &bytes).unwrap();
             let start = std::time::Instant::now();
-            let outcome = catch_unwind(AssertUnwindSafe(|| common::parse(key, &path)));
+            let outcome = catch_unwind(AssertUnwindSafe(|| testkit::parse(key, &path)));
             let seconds = start.elapsed().as_secs_f64();
             if seconds > slowest.0 {
                 slowest = (seconds, case);

@@ -2,13 +2,13 @@
 //! message names the file and the problem. The same files go through the CLI binary in
 //! `crates/echosurf-cli/tests/hostile_corpus.rs`, which also bounds time and memory.
 
-mod common;
+use echosurf_testkit as testkit;
 
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::Path;
 
-use common::corpus::{Target, generate};
 use echosurf::io;
+use testkit::corpus::{Target, generate};
 
 fn read_case(target: Target, path: &Path, config: &Path) -> echosurf::Result<()> {
     use echosurf::segment::InitialBand;
@@ -36,7 +36,7 @@ fn read_case(target: Target, path: &Path, config: &Path) -> echosurf::Result<()>
         }
         Target::Config => io::read_calibration(path).map(|_| ()),
         Target::InitialBand => {
-            InitialBand::load(path, common::SMALL_W, common::SMALL_H).map(|_| ())
+            InitialBand::load(path, testkit::SMALL_W, testkit::SMALL_H).map(|_| ())
         }
         Target::PointCloud => io::read_point_cloud(path).map(|_| ()),
         Target::Mesh => io::read_mesh(path).map(|_| ()),
@@ -48,7 +48,7 @@ fn read_case(target: Target, path: &Path, config: &Path) -> echosurf::Result<()>
 #[test]
 fn every_corpus_file_is_refused_with_a_message_naming_it() {
     let dir = tempfile::tempdir().unwrap();
-    let companions = common::corpus::companions(dir.path());
+    let companions = testkit::corpus::companions(dir.path());
     let cases = generate(dir.path());
     assert!(cases.len() >= 30, "only {} corpus cases", cases.len());
     let mut failures = Vec::new();

@@ -10,8 +10,7 @@ use echosurf::io::{
 use echosurf::{Error, FormatProblem};
 use glam::DVec3;
 
-#[path = "common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::real_data;
 use real_data::real;
 
 const SEQUENCES: &[(&str, usize, usize, usize)] = &[

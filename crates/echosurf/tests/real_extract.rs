@@ -7,8 +7,7 @@ use echosurf::pipeline::{self, ExtractOptions, Sheet};
 use echosurf::progress::NoProgress;
 use glam::{DMat4, DVec3};
 
-#[path = "common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::real_data;
 use real_data::real;
 
 const NWIRE_CONFIG: &str = "PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml";

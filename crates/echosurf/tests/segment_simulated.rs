@@ -1,11 +1,10 @@
-//! Band segmentation on simulated sweeps (crate::simulate) against the phantom's exact distance field.
+//! Band segmentation on simulated sweeps (the `echosurf-sim` crate) against the phantom's exact distance
+//! field.
 
 use echosurf::io::{FramePose, PoseResolution};
 use echosurf::progress::NoProgress;
 use echosurf::segment::{BandMasks, InitialBand, SegmentOptions, segment_sequence};
-use echosurf::simulate::{
-    PhantomKind, Simulation, SimulationOptions, build_phantom, simulate_sweeps,
-};
+use echosurf_sim::{PhantomKind, Simulation, SimulationOptions, build_phantom, simulate_sweeps};
 use glam::DVec3;
 
 /// One pass over the phantom at 0.2 mm/px, without tracking errors: `frames` frames of

@@ -8,8 +8,7 @@ use echosurf::voxel::{
     reconstruct_volume,
 };
 
-#[path = "common/real_data.rs"]
-mod real_data;
+use echosurf_testkit::real_data;
 use real_data::real;
 
 struct Agreement {

@@ -4,14 +4,14 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use echosurf::bench::{
-    self, BenchOptions, NoiseLevel, RouteResult, accuracy_vs_time_plot, fit_scaling_plot,
-    fit_sizes, markdown_table,
-};
 use echosurf::io::{self, atomic::write_bytes_atomic};
 use echosurf::pipeline::VoxelRouteOptions;
-use echosurf::rbf::{FitOptions, bench_fit_scaling};
-use echosurf::simulate::PhantomKind;
+use echosurf::rbf::FitOptions;
+use echosurf_bench::{
+    BenchOptions, NoiseLevel, RouteResult, accuracy_vs_time_plot, bench_fit_scaling,
+    fit_scaling_plot, fit_sizes, markdown_table,
+};
+use echosurf_sim::PhantomKind;
 
 use super::extract::parse_iso;
 
@@ -116,10 +116,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 phantom.name(),
                 level.name()
             );
-            let case = bench::simulated_case(phantom.clone(), level, args.quick, args.seed)
-                .with_context(|| format!("simulating {} / {}", phantom.name(), level.name()))?;
+            let case =
+                echosurf_bench::simulated_case(phantom.clone(), level, args.quick, args.seed)
+                    .with_context(|| format!("simulating {} / {}", phantom.name(), level.name()))?;
             eprintln!("bench: running both routes on {} ...", case.name);
-            results.extend(bench::run_case(
+            results.extend(echosurf_bench::run_case(
                 &case,
                 &options,
                 &crate::memory::StageMemory,
@@ -134,9 +135,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let sequence = io::read_sequence(seq.as_ref())?;
         let calibration = io::read_calibration(config.as_ref())?;
         let truth_mesh = io::read_mesh(truth.as_ref())?;
-        let case = bench::user_case(seq.to_string(), sequence, calibration, truth_mesh)?;
+        let case = echosurf_bench::user_case(seq.to_string(), sequence, calibration, truth_mesh)?;
         eprintln!("bench: running both routes on {} ...", case.name);
-        results.extend(bench::run_case(
+        results.extend(echosurf_bench::run_case(
             &case,
             &options,
             &crate::memory::StageMemory,

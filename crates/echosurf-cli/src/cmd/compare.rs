@@ -3,10 +3,10 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use echosurf::bench::{FacingSide, SweptFacingScore, SweptFacingTruth};
 use echosurf::io;
 use echosurf::mesh::MeshTopology;
 use echosurf::metrics::{CompareOptions, Comparison, SurfaceDistances, compare_meshes};
+use echosurf_bench::{FacingSide, SweptFacingScore, SweptFacingTruth};
 
 use super::outputs::{Holds, Output, check_outputs, output};
 
@@ -196,7 +196,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         object.insert(
             "mesh_largest_piece_area_share".into(),
-            echosurf::bench::largest_piece_area_share(&mesh).into(),
+            echosurf_bench::largest_piece_area_share(&mesh).into(),
         );
         for (key, topo) in [
             ("mesh", &comparison.mesh_topology),

@@ -9,7 +9,7 @@ use anyhow::Context;
 use echosurf::io;
 use echosurf::metrics::{CompareOptions, compare_meshes};
 use echosurf::pipeline::{self, ExtractOptions};
-use echosurf::simulate::{SimulationNames, SimulationOptions, simulate, write_simulation_as};
+use echosurf_sim::{SimulationNames, SimulationOptions, simulate, write_simulation_as};
 
 use super::extract::write_preview;
 use crate::progress::BarProgress;
@@ -84,21 +84,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     // All true walls in one mesh (the duck's outer and inner wall): each extracted sheet is scored
     // against the wall it belongs to.
-    let truth = echosurf::simulate::merged_truth(&sim.truth);
+    let truth = echosurf_sim::merged_truth(&sim.truth);
     if truth.is_empty() {
         anyhow::bail!("the simulation has no truth surface");
     }
     let comparison = compare_meshes(&surface.mesh, &truth, &CompareOptions::default())?;
     // Completeness of what could be seen: truth swept by a frame and facing its beam within 30 degrees
     // (a specular echo at 30 degrees is down to cos^12 = 18 %; beyond ~40 degrees nothing comes back).
-    let facing_mask = echosurf::bench::swept_beam_facing_mask(
+    let facing_mask = echosurf_bench::swept_beam_facing_mask(
         &truth,
         &sim.true_image_to_world,
         sim.sequence.width,
         sim.sequence.height,
         sim.calibration_true.clip,
         1.5,
-        echosurf::bench::FacingSide::Either,
+        echosurf_bench::FacingSide::Either,
         30.0,
     );
     let facing = compare_meshes(
@@ -118,7 +118,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             vertex_colours: Some(
                 echosurf::metrics::vertex_distance_map(&surface.mesh, &truth, ERROR_MAP_SCALE_MM).1,
             ),
-            colour_bar: Some(echosurf::metrics::distance_colour_bar(ERROR_MAP_SCALE_MM)),
+            colour_bar: Some(echosurf::render::distance_colour_bar(ERROR_MAP_SCALE_MM)),
             ..echosurf::render::RenderOptions::default()
         },
     )?;

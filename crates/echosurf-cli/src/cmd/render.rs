@@ -107,7 +107,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         colour_bar: args
             .distance_to
             .as_ref()
-            .map(|_| echosurf::metrics::distance_colour_bar(args.scale_mm)),
+            .map(|_| echosurf::render::distance_colour_bar(args.scale_mm)),
         vertex_colours,
         overlay_lines,
         ..defaults

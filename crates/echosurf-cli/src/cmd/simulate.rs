@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use echosurf::simulate::{
+use echosurf_sim::{
     PhantomKind, PhysicsPreset, SimulationNames, SimulationOptions, Surround, simulate,
     write_preview, write_simulation_as,
 };

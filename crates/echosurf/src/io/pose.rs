@@ -256,16 +256,16 @@ pub fn resolve_poses(
 /// normal, and the inverse Gram matrix of (u, v), which projects a world point orthogonally onto the
 /// plane in pixel coordinates (whatever the image's third axis in the matrix).
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct FramePlane {
-    pub(crate) origin: DVec3,
+pub struct FramePlane {
+    pub origin: DVec3,
     u: DVec3,
-    pub(crate) v: DVec3,
-    pub(crate) normal: DVec3,
+    pub v: DVec3,
+    pub normal: DVec3,
     gram_inverse: [[f64; 2]; 2],
 }
 
 impl FramePlane {
-    pub(crate) fn new(image_to_world: DMat4) -> Option<FramePlane> {
+    pub fn new(image_to_world: DMat4) -> Option<FramePlane> {
         let origin = image_to_world.transform_point3(DVec3::ZERO);
         let u = image_to_world.transform_vector3(DVec3::X);
         let v = image_to_world.transform_vector3(DVec3::Y);
@@ -285,14 +285,14 @@ impl FramePlane {
     }
 
     /// Pixel coordinates of the point's projection onto the plane.
-    pub(crate) fn pixel_of(&self, p: DVec3) -> [f64; 2] {
+    pub fn pixel_of(&self, p: DVec3) -> [f64; 2] {
         let d = p - self.origin;
         let (a, b) = (self.u.dot(d), self.v.dot(d));
         let g = self.gram_inverse;
         [g[0][0] * a + g[0][1] * b, g[1][0] * a + g[1][1] * b]
     }
 
-    pub(crate) fn world_of(&self, pixel: [f64; 2]) -> DVec3 {
+    pub fn world_of(&self, pixel: [f64; 2]) -> DVec3 {
         self.origin + self.u * pixel[0] + self.v * pixel[1]
     }
 }

@@ -197,23 +197,6 @@ pub fn distance_colour(distance_mm: f64, scale_mm: f64) -> [u8; 3] {
     std::array::from_fn(|c| (STOPS[k][c] * (1.0 - f) + STOPS[k + 1][c] * f).round() as u8)
 }
 
-/// The key to [`distance_colour`] on `scale_mm`, for a picture: the ramp from 0 to the scale, labelled
-/// at 0, half the scale and the scale (in mm).
-pub fn distance_colour_bar(scale_mm: f64) -> crate::render::ColourBar {
-    const STEPS: usize = 256;
-    let short = |x: f64| format!("{}", (x * 1000.0).round() / 1000.0);
-    crate::render::ColourBar {
-        colours: (0..STEPS)
-            .map(|i| distance_colour(scale_mm * i as f64 / (STEPS - 1) as f64, scale_mm))
-            .collect(),
-        labels: vec![
-            (0.0, "0".into()),
-            (0.5, short(scale_mm / 2.0)),
-            (1.0, format!("{} mm", short(scale_mm))),
-        ],
-    }
-}
-
 /// An error map: each vertex of `mesh`'s distance to the nearest triangle of `to` (mm) and its
 /// [`distance_colour`] on `scale_mm`.
 pub fn vertex_distance_map(mesh: &Mesh, to: &Mesh, scale_mm: f64) -> (Vec<f64>, Vec<[u8; 3]>) {
@@ -566,12 +549,6 @@ mod tests {
         assert_eq!(distance_colour(7.0, 1.0), [215, 40, 40]);
         assert_eq!(distance_colour(f64::INFINITY, 1.0), [128, 128, 128]);
         assert_eq!(distance_colour(0.25, 0.5), distance_colour(0.5, 1.0));
-        // Its key: the ramp end to end, labelled in mm.
-        let bar = distance_colour_bar(0.6);
-        assert_eq!(bar.colours.first(), Some(&distance_colour(0.0, 0.6)));
-        assert_eq!(bar.colours.last(), Some(&distance_colour(0.6, 0.6)));
-        let labels: Vec<&str> = bar.labels.iter().map(|(_, l)| l.as_str()).collect();
-        assert_eq!(labels, ["0", "0.3", "0.6 mm"]);
         // Red grows and blue falls from the middle of the scale on.
         let ramp: Vec<[u8; 3]> = (0..=20)
             .map(|k| distance_colour(k as f64 * 0.05, 1.0))

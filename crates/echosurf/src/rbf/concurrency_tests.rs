@@ -1,7 +1,7 @@
 //! Fits running at the same time in one process give the same bytes as the same fits run one after
 //! another: the solvers pass their parallelism to faer explicitly and change no process-wide setting.
 
-use super::bench_data::ultrasound_like_samples;
+use super::synthetic::ultrasound_like_samples;
 use super::*;
 use crate::progress::NoProgress;
 

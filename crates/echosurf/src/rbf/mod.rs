@@ -11,7 +11,6 @@
 // Dense linear algebra reads best in index notation.
 #![allow(clippy::needless_range_loop)]
 
-mod bench_data;
 mod coarse;
 mod direct;
 mod fast;
@@ -19,6 +18,8 @@ mod kernel;
 mod merge;
 mod model;
 mod pu;
+mod reference;
+mod synthetic;
 mod tree;
 mod trend;
 
@@ -29,15 +30,12 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 
-pub use bench_data::{
-    BAND_DILATION_PX, BAND_SMOOTHING_SIGMA_PX, BAND_THRESHOLD_GREY, ScalingRow, band_pixels,
-    bench_fit_scaling, definition_max_misfit, definition_value, simulated_band_pixels,
-    ultrasound_like_samples,
-};
 pub use fast::FastBreakdown;
 pub use merge::merge_near_duplicates;
 pub use model::RbfModel;
 pub use pu::{MAX_PATCH_FACTOR, MIN_PATCH_POINTS};
+pub use reference::{definition_max_misfit, definition_value};
+pub use synthetic::ultrasound_like_samples;
 
 use crate::progress::Progress;
 use crate::{Error, Result};
@@ -594,8 +592,6 @@ fn greedy_reduction(
 
 #[cfg(test)]
 mod concurrency_tests;
-#[cfg(test)]
-mod contract_tests;
 #[cfg(test)]
 mod pu_tests;
 #[cfg(test)]

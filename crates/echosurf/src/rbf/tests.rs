@@ -403,3 +403,14 @@ fn coarse_level_cuts_iterations_and_the_solve_meets_the_accuracy_exactly() {
         .fold(0.0f64, f64::max);
     assert!(worst <= accuracy + 0.05, "exact max residual {worst}");
 }
+
+#[test]
+fn the_dense_solve_refuses_what_does_not_fit_in_memory() {
+    assert!(check_dense_memory(2_000).is_ok());
+    let err = check_dense_memory(200_004).expect_err("640 GB");
+    let text = err.to_string();
+    assert!(
+        text.contains("640.0 GB") && text.contains("--solver pu"),
+        "{text}"
+    );
+}

@@ -70,7 +70,7 @@
 //! is a table); rows run in parallel with rayon and all buffers are reused between frames.
 
 pub mod bone;
-pub(crate) mod filters;
+pub mod filters;
 mod init;
 mod preview;
 #[doc(hidden)]

@@ -1,6 +1,6 @@
 //! A small synthetic sweep generator for tests and benchmarks: frames of one curved bright boundary (a
 //! bone-like echo with an acoustic shadow below) under multiplicative Rayleigh speckle, with the true
-//! boundary curve of every frame. Not a physical simulator (that is `crate::simulate`).
+//! boundary curve of every frame. Not a physical simulator (that is the `echosurf-sim` crate).
 
 use glam::{DMat4, DVec3};
 use rand::{Rng, SeedableRng};

@@ -663,8 +663,7 @@ fn a_band_that_follows_what_it_holds_never_takes_in_a_second_echo() {
     assert_eq!(following.parameters.band_radius_outside_px, 0.0);
 }
 
-#[path = "../../tests/common/png_pixels.rs"]
-mod png_pixels;
+use echosurf_testkit::png_pixels;
 use png_pixels::read_grey_png;
 
 #[test]
