@@ -267,6 +267,11 @@ fn extract_refuses_bad_requests_without_writing() {
         err.contains("iso-level 300") && err.contains("outside"),
         "{err}"
     );
+    // The library's option is named as the flag that sets it.
+    assert!(
+        err.contains("set --iso to auto") && !err.contains("ExtractOptions::"),
+        "{err}"
+    );
     assert!(!err.contains("panicked"));
     assert!(!mesh.exists());
 

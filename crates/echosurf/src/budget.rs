@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use crate::io::TrackedSequence;
 use crate::rbf::SolverChoice;
-use crate::{Error, Result};
+use crate::{Error, OptionName, Phrase, Result};
 
 /// Fraction of the machine's memory a run may plan to use by default.
 const DEFAULT_FRACTION: f64 = 0.5;
@@ -54,14 +54,25 @@ pub fn resident_bytes() -> u64 {
     crate::resources::current_rss_bytes().unwrap_or(0)
 }
 
-/// Records `need` and refuses it past `budget_bytes` with `message(need, budget)`.
-fn check_need(need: u64, budget_bytes: u64, message: impl FnOnce() -> String) -> Result<()> {
+/// Records `need` and refuses it past `budget_bytes` (set by [`OptionName::MemoryBudget`]) with
+/// `message()`.
+fn check_need(need: u64, budget_bytes: u64, message: impl FnOnce() -> Phrase) -> Result<()> {
     record_estimate(need);
     if need <= budget_bytes {
         Ok(())
     } else {
-        Err(Error::ResourceLimit(message()))
+        Err(Error::OverBudget {
+            needed_bytes: need,
+            budget_bytes,
+            budget_option: Some(OptionName::MemoryBudget),
+            message: message(),
+        })
     }
+}
+
+/// "raise" and the memory budget's option.
+fn or_raise_budget() -> Phrase {
+    Phrase::new("raise ").option(OptionName::MemoryBudget)
 }
 
 /// Half of `MemTotal` from `/proc/meminfo`, or 8 GiB where that is unavailable.
@@ -138,15 +149,15 @@ pub fn check_extract_budget(sequence: &TrackedSequence, budget_bytes: u64) -> Re
     let segment = pixels.saturating_mul(SEGMENT_BYTES_PER_PIXEL);
     let need = resident.saturating_add(segment);
     check_need(need, budget_bytes, || {
-        format!(
+        Phrase::new(format!(
             "extract would need at least {} before fitting ({} resident with the decoded frames, {} to \
-            segment {pixels} pixels) but the memory budget is {}: split the sequence (fewer frames) or \
-            raise --memory-budget",
+            segment {pixels} pixels) but the memory budget is {}: split the sequence (fewer frames) or ",
             mb(need),
             mb(resident),
             mb(segment),
             mb(budget_bytes)
-        )
+        ))
+        .then(or_raise_budget())
     })
 }
 
@@ -172,7 +183,7 @@ pub struct FitPlan<'a> {
 }
 
 /// Estimates the RBF route's peak once the bands are segmented: the samples from the kept pixels (one
-/// per bin), the fit of at most `--max-samples` of them with the solver `rbf::fit` will choose.
+/// per bin), the fit of at most `max_samples` of them with the solver `rbf::fit` will choose.
 pub fn estimate_extract_memory(
     counts: SegmentedCounts,
     options: FitPlan<'_>,
@@ -198,7 +209,7 @@ pub fn estimate_extract_memory(
 }
 
 /// Second check of the RBF route, after segmenting and before the samples are collected: refuses
-/// when the estimate exceeds `budget_bytes`, naming the parts and a `--max-samples` that would fit.
+/// when the estimate exceeds `budget_bytes`, naming the parts and a sample cap that would fit.
 pub fn check_extract_budget_after_segmentation(
     counts: SegmentedCounts,
     options: FitPlan<'_>,
@@ -211,9 +222,11 @@ pub fn check_extract_budget_after_segmentation(
             .saturating_add(e.normalised_frames)
             .saturating_add(e.samples);
         let advice = if fixed >= budget_bytes {
-            "the frames and their kept pixels alone take that: a narrower band, fewer frames or a \
-            larger --memory-budget"
-                .to_string()
+            Phrase::new(
+                "the frames and their kept pixels alone take that: a narrower band, fewer frames or a \
+                larger ",
+            )
+            .option(OptionName::MemoryBudget)
         } else {
             // Largest sample count whose fit fits in what is left.
             let room = budget_bytes - fixed;
@@ -226,12 +239,15 @@ pub fn check_extract_budget_after_segmentation(
                     hi = mid - 1;
                 }
             }
-            format!("--max-samples {lo} or fewer would fit, or raise --memory-budget")
+            Phrase::new("")
+                .option(OptionName::MaxSamples)
+                .text(format!(" {lo} or fewer would fit, or "))
+                .then(or_raise_budget())
         };
-        format!(
+        Phrase::new(format!(
             "extract would need about {} ({} resident with the frames and bands, normalised frames {}, \
             samples of {} kept pixels {}, fit {}; the surface is checked after the fit) but the memory \
-             budget is {}: {advice}",
+             budget is {}: ",
             mb(e.total()),
             mb(e.resident),
             mb(e.normalised_frames),
@@ -239,7 +255,8 @@ pub fn check_extract_budget_after_segmentation(
             mb(e.samples),
             mb(e.fit),
             mb(budget_bytes),
-        )
+        ))
+        .then(advice)
     })
 }
 
@@ -253,15 +270,19 @@ pub fn check_fit_budget(
     let fit = fit_bytes_with(points, options, PU_FIT_FRESH_BYTES_PER_SAMPLE);
     let need = resident.saturating_add(fit);
     check_need(need, budget_bytes, || {
-        format!(
+        Phrase::new(format!(
             "fitting {points} points would need about {} ({} resident, fit {}) but the memory budget \
-            is {}: fewer points (--max-centres, or thin the cloud), another --solver, or raise \
-            --memory-budget",
+            is {}: fewer points (",
             mb(need),
             mb(resident),
             mb(fit),
             mb(budget_bytes)
-        )
+        ))
+        .option(OptionName::FitMaxCentres)
+        .text(", or thin the cloud), another ")
+        .option(OptionName::FitSolver)
+        .text(", or ")
+        .then(or_raise_budget())
     })
 }
 
@@ -273,15 +294,17 @@ pub fn check_surface_budget(seeds: u64, resolution_mm: f64, budget_bytes: u64) -
     let surface = surface_bytes(seeds, resolution_mm);
     let need = resident.saturating_add(surface);
     check_need(need, budget_bytes, || {
-        format!(
+        Phrase::new(format!(
             "surfacing from {seeds} seed points at {resolution_mm} mm would need about {} ({} \
-             resident with the fitted model, surface {}) but the memory budget is {}: a coarser \
-             --resolution, or raise --memory-budget",
+             resident with the fitted model, surface {}) but the memory budget is {}: a coarser ",
             mb(need),
             mb(resident),
             mb(surface),
             mb(budget_bytes)
-        )
+        ))
+        .option(OptionName::SurfaceResolution)
+        .text(", or ")
+        .then(or_raise_budget())
     })
 }
 
@@ -327,18 +350,22 @@ pub fn check_compare_budget(
     let resident = resident_bytes();
     let need = resident.saturating_add(samples).saturating_add(meshes);
     check_need(need, budget_bytes, || {
-        format!(
+        Phrase::new(format!(
             "compare would place {mesh_samples} + {truth_samples} area samples at {} per mm^2 and \
              need about {} ({} resident with the meshes, samples {}, mesh search structures {}) but \
-             the memory budget is {}: lower --samples-per-mm2 or --max-samples, or raise \
-             --memory-budget",
+             the memory budget is {}: lower ",
             options.samples_per_mm2,
             mb(need),
             mb(resident),
             mb(samples),
             mb(meshes),
             mb(budget_bytes)
-        )
+        ))
+        .option(OptionName::CompareSamplesPerMm2)
+        .text(" or ")
+        .option(OptionName::CompareMaxSamples)
+        .text(", or ")
+        .then(or_raise_budget())
     })
 }
 
@@ -371,8 +398,12 @@ mod tests {
     #[test]
     fn an_estimate_past_the_budget_is_refused_with_the_message() {
         assert!(check_need(10, 10, || unreachable!()).is_ok());
-        let e = check_need(11, 10, || "over".into()).unwrap_err();
-        assert!(matches!(e, Error::ResourceLimit(m) if m == "over"));
+        let e = check_need(11, 10, || Phrase::new("over")).unwrap_err();
+        assert!(matches!(
+            e,
+            Error::OverBudget { needed_bytes: 11, budget_bytes: 10, budget_option: Some(OptionName::MemoryBudget), ref message }
+                if message.to_string() == "over"
+        ));
     }
 
     #[test]

@@ -50,4 +50,4 @@ pub(crate) mod spatial;
 pub mod surface;
 pub mod voxel;
 
-pub use error::{Error, FormatProblem, Result};
+pub use error::{Error, FormatProblem, OptionName, OptionsErrorKind, Phrase, Result};

@@ -657,10 +657,15 @@ fn check_levels(levels: &[f64], samples: &SampleSet) -> Result<()> {
             )));
         }
         if level <= lo as f64 || level >= hi as f64 {
-            return Err(Error::InvalidInput(format!(
-                "iso-level {level} is outside the grey levels of the kept pixels ({lo} to {hi}): it \
-                 would give no surface; use --iso auto or a level in that range"
-            )));
+            return Err(Error::Options {
+                kind: crate::OptionsErrorKind::InvalidInput,
+                message: crate::Phrase::new(format!(
+                    "iso-level {level} is outside the grey levels of the kept pixels ({lo} to {hi}): \
+                     it would give no surface; set "
+                ))
+                .option(crate::OptionName::IsoLevels)
+                .text(" to auto or a level in that range"),
+            });
         }
     }
     Ok(())

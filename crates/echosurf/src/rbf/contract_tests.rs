@@ -136,7 +136,8 @@ fn an_accuracy_out_of_reach_is_refused_with_the_achieved_figure() {
     let text = err.to_string();
     assert!(
         text.contains("above the requested accuracy 0.0000000000001")
-            && text.contains("--solver fast"),
+            && text.contains("FitOptions::solver to fast")
+            && err.options().contains(&crate::OptionName::FitSolver),
         "{text}"
     );
     let err = fit(
@@ -158,9 +159,13 @@ fn the_dense_solve_refuses_what_does_not_fit_in_memory() {
     let err = check_dense_memory(200_004).expect_err("640 GB");
     let text = err.to_string();
     assert!(
-        text.contains("640.0 GB") && text.contains("--solver pu"),
+        text.contains("640.0 GB") && text.contains("to pu or fast"),
         "{text}"
     );
+    assert!(matches!(
+        err,
+        crate::Error::OverBudget { budget_option: None, needed_bytes, .. } if needed_bytes == 2 * 200_004u64 * 200_004 * 8
+    ));
 }
 
 /// A clean echo shell: samples within 3 mm of a sphere of radius 12 mm, grey level of a Gaussian echo

@@ -40,7 +40,7 @@ pub use model::RbfModel;
 pub use pu::{MAX_PATCH_FACTOR, MIN_PATCH_POINTS};
 
 use crate::progress::Progress;
-use crate::{Error, Result};
+use crate::{Error, OptionName, OptionsErrorKind, Phrase, Result};
 
 /// Which linear solver [`fit`] uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
@@ -203,17 +203,20 @@ pub fn fit(
             (report.max_data_misfit, report.rms_data_misfit) = (max_m, rms_m);
         }
         if report.max_residual.is_nan() || report.max_residual > options.accuracy {
-            return Err(Error::Numerical(format!(
-                "RBF fit ({:?} solver, {} samples, smoothing {} mm): the largest system residual \
-                 |f_i - s(x_i) + w l_i| of the fitted model is {:.4} grey levels, above the \
-                 requested accuracy {}; {}",
-                sub.solver,
-                pts.len(),
-                options.smoothing,
-                report.max_residual,
-                options.accuracy,
-                accuracy_advice(sub.solver)
-            )));
+            return Err(Error::Options {
+                kind: OptionsErrorKind::Numerical,
+                message: Phrase::new(format!(
+                    "RBF fit ({:?} solver, {} samples, smoothing {} mm): the largest system residual \
+                     |f_i - s(x_i) + w l_i| of the fitted model is {:.4} grey levels, above the \
+                     requested accuracy {}; ",
+                    sub.solver,
+                    pts.len(),
+                    options.smoothing,
+                    report.max_residual,
+                    options.accuracy,
+                ))
+                .then(accuracy_advice(sub.solver)),
+            });
         }
         sub.model
     };
@@ -227,15 +230,24 @@ pub fn fit(
 }
 
 /// What to change when a solver misses the accuracy.
-fn accuracy_advice(solver: SolverChoice) -> &'static str {
+fn accuracy_advice(solver: SolverChoice) -> Phrase {
+    use OptionName::{FitAccuracy, FitSmoothing, FitSolver};
+    let raise_both = Phrase::new("raise ")
+        .option(FitAccuracy)
+        .text(" or ")
+        .option(FitSmoothing);
     match solver {
-        SolverChoice::PartitionOfUnity => {
-            "raise --accuracy or --smoothing, or use --solver fast (the global spline)"
-        }
+        SolverChoice::PartitionOfUnity => raise_both
+            .text(", or set ")
+            .option(FitSolver)
+            .text(" to fast (the global spline)"),
         SolverChoice::Fast => {
-            "raise --accuracy or --smoothing (the model's evaluation error is part of the figure)"
+            raise_both.text(" (the model's evaluation error is part of the figure)")
         }
-        _ => "raise --smoothing (near-coincident samples with different values) or --accuracy",
+        _ => Phrase::new("raise ")
+            .option(FitSmoothing)
+            .text(" (near-coincident samples with different values) or ")
+            .option(FitAccuracy),
     }
 }
 
@@ -440,13 +452,19 @@ fn check_dense_memory(size: usize) -> Result<()> {
     let needed = dense_solve_bytes(size);
     let budget = crate::budget::default_memory_budget_bytes();
     if needed > u128::from(budget) {
-        return Err(Error::ResourceLimit(format!(
-            "dense RBF solve of {size} unknowns needs {:.1} GB (two {size} x {size} f64 matrices), \
-             more than the {:.1} GB memory budget (half the machine's memory); use --solver pu or \
-             --solver fast, or fewer samples",
-            needed as f64 / 1e9,
-            budget as f64 / 1e9
-        )));
+        return Err(Error::OverBudget {
+            needed_bytes: needed.min(u128::from(u64::MAX)) as u64,
+            budget_bytes: budget,
+            budget_option: None,
+            message: Phrase::new(format!(
+                "dense RBF solve of {size} unknowns needs {:.1} GB (two {size} x {size} f64 matrices), \
+                 more than the {:.1} GB memory budget (half the machine's memory); set ",
+                needed as f64 / 1e9,
+                budget as f64 / 1e9
+            ))
+            .option(OptionName::FitSolver)
+            .text(" to pu or fast, or fit fewer samples"),
+        });
     }
     Ok(())
 }
@@ -475,11 +493,16 @@ fn solve_partition_of_unity(
         pu_model.memory_bytes() + rayon::current_num_threads() * size * (size + 1) * 8;
     let model = RbfModel::from_partition_of_unity(pu_model);
     if stats.foreign_weighted_samples > 0 {
-        return Err(Error::Numerical(format!(
-            "partition-of-unity fit: {} samples are weighted by patches not fitted to them (a bug in \
-             the partition; use --solver fast)",
-            stats.foreign_weighted_samples
-        )));
+        return Err(Error::Options {
+            kind: OptionsErrorKind::Numerical,
+            message: Phrase::new(format!(
+                "partition-of-unity fit: {} samples are weighted by patches not fitted to them (a bug \
+                 in the partition; set ",
+                stats.foreign_weighted_samples
+            ))
+            .option(OptionName::FitSolver)
+            .text(" to fast)"),
+        });
     }
     Ok(SubsetFit {
         model,
