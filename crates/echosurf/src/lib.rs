@@ -45,6 +45,7 @@ pub mod render;
 pub mod resources;
 pub mod samples;
 pub mod segment;
+mod serde_forms;
 pub mod simulate;
 pub(crate) mod spatial;
 pub mod surface;

@@ -31,8 +31,7 @@ mod options;
 mod voxel_route;
 
 pub use options::{
-    CleanupTuning, ExtractConfig, FitTuning, MethodChoice, OptionError, RidgeTuning,
-    SamplingTuning, SurfaceTuning, Tuning, UserOptions, VoxelTuning,
+    CleanupTuning, ExtractConfig, MethodChoice, OptionError, SamplingTuning, Tuning, UserOptions,
 };
 
 pub use voxel_route::{VoxelRouteOptions, VoxelRouteReport, smooth_masked_gaussian};
@@ -136,6 +135,7 @@ impl ExtractOptions {
 /// ridge. They fill the sheet between frames (where the fitted echo's peak sags) and along walls
 /// turning from the beam; a weak echo is never taken on its own.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct WeakEchoes {
     /// The lower level lies this fraction of the way from the iso-level down to the background level
     /// (of the kept pixels); 0 turns the extension off.

@@ -58,27 +58,37 @@ pub enum SolverChoice {
     PartitionOfUnity,
 }
 
-/// Parameters of [`fit`].
-#[derive(Debug, Clone, PartialEq)]
+/// Parameters of [`fit`]; also the `[tuning.fit]` section of `extract`'s options (the TOML has
+/// no smoothing, seed or centre reduction: `extract` takes the first two from its user tier and does
+/// not reduce centres).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct FitOptions {
     /// Smoothing weight w >= 0, in mm (grey level per grey-level/mm): the fit satisfies
     /// `f_i - s(x_i) = -w l_i`; larger is smoother, w = 0 interpolates, w -> infinity gives the
     /// least-squares linear trend. Sensible values are comparable to the sample spacing or a few times it.
+    #[serde(skip)]
     pub smoothing: f64,
     /// Fitting accuracy in grey levels: the solve stops when `max_i |f_i - s(x_i) - w l_i| <= accuracy`
     /// (at w = 0 this is the largest data misfit).
+    #[serde(rename = "accuracy_grey")]
     pub accuracy: f64,
     /// Relative accuracy of the fast evaluator (far-field error relative to the sum of absolute
     /// contributions); also used for the products inside the fast solver.
     pub eval_accuracy: f64,
     /// Upper bound on the number of centres; fewer than the samples implies greedy reduction.
+    #[serde(skip)]
     pub max_centres: Option<usize>,
     /// Greedy centre reduction (Carr et al. 2001): fit a subset, add the worst-fitted samples, repeat.
+    #[serde(skip)]
     pub reduce_centres: bool,
     /// Seed of the random initial subset of the centre reduction.
+    #[serde(skip)]
     pub seed: u64,
     /// Samples closer than this (mm) are merged into one, with the mean value.
     pub merge_distance_mm: f64,
+    /// `auto`, `direct`, `pu` or `fast` in the TOML.
+    #[serde(with = "solver_words")]
     pub solver: SolverChoice,
     /// Largest problem [`SolverChoice::Auto`] solves densely.
     pub direct_max_points: usize,
@@ -111,6 +121,13 @@ impl Default for FitOptions {
         }
     }
 }
+
+crate::serde_forms::word_serde!(solver_words, SolverChoice, [
+    "auto" => SolverChoice::Auto,
+    "direct" => SolverChoice::Direct,
+    "pu" => SolverChoice::PartitionOfUnity,
+    "fast" => SolverChoice::Fast,
+]);
 
 /// What [`fit`] did.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
