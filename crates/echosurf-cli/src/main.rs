@@ -83,7 +83,7 @@ impl Command {
 /// `--memory-report`: the estimate and the measured peak, in MB, and their ratio.
 fn memory_report_line() -> String {
     let mb = |b: u64| format!("{:.1} MB", b as f64 / 1e6);
-    let estimate = echosurf::budget::largest_estimate_bytes();
+    let estimate = memory::largest_estimate_bytes();
     let peak = memory::lifetime_peak_rss_bytes();
     let text = |b: Option<u64>| b.map(mb).unwrap_or_else(|| "none".into());
     let ratio = match (estimate, peak) {

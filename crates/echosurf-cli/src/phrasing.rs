@@ -110,7 +110,9 @@ mod tests {
     #[test]
     fn library_options_are_named_as_the_subcommand_s_flags() {
         let fit = echosurf::rbf::FitOptions::default();
-        let error = echosurf::budget::check_fit_budget(1000, &fit, 0).unwrap_err();
+        let error =
+            echosurf::budget::check_fit_budget(1000, &fit, 0, &echosurf::progress::NoProgress)
+                .unwrap_err();
         let library = error.to_string();
         let error = anyhow::Error::new(error).context("fitting cloud.ply");
         let text = error_message(&error, Terms::Fit);

@@ -261,6 +261,7 @@ impl Error {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::progress::NoProgress;
 
     /// Every error the library builds from its options, with the budget at 0 so each refuses.
     fn option_errors() -> Vec<Error> {
@@ -290,27 +291,31 @@ mod tests {
             ..Default::default()
         };
         vec![
-            budget::check_fit_budget(1000, &fit, 0).unwrap_err(),
-            budget::check_surface_budget(1000, 0.5, 0).unwrap_err(),
-            budget::check_extract_budget_after_segmentation(counts, plan, 0).unwrap_err(),
-            budget::check_extract_budget_after_segmentation(counts, plan, 1 << 40).map_or_else(
-                |e| e,
-                |()| {
-                    // Room for the samples but not the fit: the advice names a sample cap.
-                    let e = budget::estimate_extract_memory(counts, plan);
-                    budget::check_extract_budget_after_segmentation(
-                        counts,
-                        plan,
-                        e.total() - e.fit / 2,
-                    )
-                    .unwrap_err()
-                },
-            ),
+            budget::check_fit_budget(1000, &fit, 0, &NoProgress).unwrap_err(),
+            budget::check_surface_budget(1000, 0.5, 0, &NoProgress).unwrap_err(),
+            budget::check_extract_budget_after_segmentation(counts, plan, 0, &NoProgress)
+                .unwrap_err(),
+            budget::check_extract_budget_after_segmentation(counts, plan, 1 << 40, &NoProgress)
+                .map_or_else(
+                    |e| e,
+                    |()| {
+                        // Room for the samples but not the fit: the advice names a sample cap.
+                        let e = budget::estimate_extract_memory(counts, plan);
+                        budget::check_extract_budget_after_segmentation(
+                            counts,
+                            plan,
+                            e.total() - e.fit / 2,
+                            &NoProgress,
+                        )
+                        .unwrap_err()
+                    },
+                ),
             budget::check_compare_budget(
                 &triangle,
                 &triangle,
                 &crate::metrics::CompareOptions::default(),
                 0,
+                &NoProgress,
             )
             .unwrap_err(),
             segment.validate().unwrap_err(),
@@ -356,7 +361,7 @@ mod tests {
 
     #[test]
     fn an_over_budget_error_carries_the_figures_and_the_option() {
-        let error = crate::budget::check_surface_budget(1000, 0.5, 7).unwrap_err();
+        let error = crate::budget::check_surface_budget(1000, 0.5, 7, &NoProgress).unwrap_err();
         let Error::OverBudget {
             needed_bytes,
             budget_bytes,

@@ -22,6 +22,7 @@ use std::path::Path;
 use glam::DVec3;
 
 use crate::io::ply::PlyFile;
+use crate::io::polygons::{push_polygon, unit_normals};
 use crate::mesh::Mesh;
 use crate::{Error, FormatProblem, Result};
 
@@ -425,37 +426,6 @@ fn write_obj(path: &Path, mesh: &Mesh, space: Space) -> Result<()> {
     })
 }
 
-/// Appends the fan triangulation of a polygon, after checking every index.
-pub(crate) fn push_polygon(
-    path: &Path,
-    what: &str,
-    polygon: &[u32],
-    vertex_count: usize,
-    triangles: &mut Vec<[u32; 3]>,
-) -> Result<()> {
-    if polygon.len() < 3 {
-        return Err(Error::format(
-            path,
-            FormatProblem::BadValue,
-            format!(
-                "{what} has {} vertices (a face needs at least 3)",
-                polygon.len()
-            ),
-        ));
-    }
-    if let Some(&i) = polygon.iter().find(|&&i| i as usize >= vertex_count) {
-        return Err(Error::format(
-            path,
-            FormatProblem::BadValue,
-            format!("{what} refers to vertex {i} but there are only {vertex_count} vertices"),
-        ));
-    }
-    for k in 1..polygon.len() - 1 {
-        triangles.push([polygon[0], polygon[k], polygon[k + 1]]);
-    }
-    Ok(())
-}
-
 fn parse_ply_mesh(path: &Path, bytes: &[u8]) -> Result<Mesh> {
     let ply = PlyFile::parse(path, bytes)?;
     let vertex = ply.element("vertex").ok_or_else(|| {
@@ -527,18 +497,6 @@ fn parse_ply_mesh(path: &Path, bytes: &[u8]) -> Result<Mesh> {
         normals,
         triangles,
     })
-}
-
-/// Normalised normals, or none at all if any is zero or not finite (a mesh has all or none).
-pub(crate) fn unit_normals(normals: impl Iterator<Item = DVec3>) -> Vec<DVec3> {
-    let mut out = Vec::new();
-    for n in normals {
-        match n.try_normalize() {
-            Some(u) => out.push(u),
-            None => return Vec::new(),
-        }
-    }
-    out
 }
 
 /// Welds triangle-soup corners that are bit-identical (after folding -0 into +0).

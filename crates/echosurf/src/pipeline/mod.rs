@@ -515,7 +515,12 @@ pub fn prepare_samples_from_masks(
             bin_px,
             bone_sweep: masks.bone_sweep,
         };
-        crate::budget::check_extract_budget_after_segmentation(counts, fit_plan(options), budget)?;
+        crate::budget::check_extract_budget_after_segmentation(
+            counts,
+            fit_plan(options),
+            budget,
+            meter.observer(),
+        )?;
     }
     // A bone band is fitted against each echo's own contrast (see `segment::bone`).
     let normalised = masks.bone_sweep.then(|| {
@@ -791,7 +796,7 @@ pub fn extract(
         return voxel_route::extract_voxel(sequence, calibration, options, route, progress);
     }
     if let Some(budget) = options.memory_budget_bytes {
-        crate::budget::check_extract_budget(sequence, budget)?;
+        crate::budget::check_extract_budget(sequence, budget, progress)?;
     }
     let mut meter = StageMeter::new(progress);
     let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
@@ -885,6 +890,7 @@ fn extract_from_prepared(
             domain.seeds.len() as u64,
             surface_options.resolution_mm,
             budget,
+            progress,
         )?;
     }
     let (mut meshes, surface_stats) = meter.stage("surface", || {

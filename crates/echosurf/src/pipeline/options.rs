@@ -392,7 +392,7 @@ impl ExtractConfig {
             weak_echoes: t.weak_echoes.clone(),
             memory_budget_bytes: Some(match t.memory_budget_mb {
                 Some(mb) => (mb * 1e6) as u64,
-                None => crate::budget::default_memory_budget_bytes(),
+                None => crate::resources::default_memory_budget_bytes(),
             }),
         }
     }

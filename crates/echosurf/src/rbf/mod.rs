@@ -467,7 +467,7 @@ pub fn dense_solve_bytes(size: usize) -> u128 {
 /// Refuses a dense solve that would not fit the memory budget (half the machine's memory).
 fn check_dense_memory(size: usize) -> Result<()> {
     let needed = dense_solve_bytes(size);
-    let budget = crate::budget::default_memory_budget_bytes();
+    let budget = crate::resources::default_memory_budget_bytes();
     if needed > u128::from(budget) {
         return Err(Error::OverBudget {
             needed_bytes: needed.min(u128::from(u64::MAX)) as u64,
