@@ -125,10 +125,9 @@ pub(super) fn surface_seeds(
     near.into_iter().step_by(stride).collect()
 }
 
-/// At most this many seeds start the surface-following. Measured on the simulated duck (100k samples):
-/// 5,000 seeds from a band of 0.1 x (boundary - background) around the level give the same completeness
-/// (29.7% vs 30.0%) as 20,000, with 16.8 instead of 28.9 field evaluations per triangle (surface 0.45 s
-/// instead of 1.26 s); every separate piece of surface still gets seeds because they are spread evenly.
+/// At most this many seeds start the surface-following: more cost field evaluations without adding
+/// surface, and every separate piece still gets seeds because they are spread evenly
+/// (docs/decisions/0034-figures-from-code-comments.md).
 pub const MAX_SURFACE_SEEDS: usize = 5_000;
 
 /// Width of the seed band as a fraction of (boundary - background) echo levels.

@@ -50,8 +50,8 @@ pub enum SolverChoice {
     Auto,
     /// Dense LU, O(N^2) memory, O(N^3) time: the reference.
     Direct,
-    /// The *global* spline: treecode + two-level Schwarz-preconditioned GMRES (accurate to the fitting
-    /// accuracy; ~50x slower than partition of unity at 100k samples: 30-40 s vs 0.7 s on one core).
+    /// The *global* spline: treecode + two-level Schwarz-preconditioned GMRES, accurate to the fitting
+    /// accuracy but much slower than partition of unity (docs/decisions/0034-figures-from-code-comments.md).
     Fast,
     /// Partition of unity: local dense fits on overlapping patches blended by Wendland weights
     /// (O(N), parallel); not the single global spline, but agrees with it to within the local fit error.
