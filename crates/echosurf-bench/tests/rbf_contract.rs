@@ -140,7 +140,8 @@ fn an_accuracy_out_of_reach_is_refused_with_the_achieved_figure() {
     let text = err.to_string();
     assert!(
         text.contains("above the requested accuracy 0.0000000000001")
-            && text.contains("--solver fast"),
+            && text.contains("FitOptions::solver to fast")
+            && err.options().contains(&crate::OptionName::FitSolver),
         "{text}"
     );
     let err = fit(

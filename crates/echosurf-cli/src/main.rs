@@ -6,6 +6,7 @@ mod stdout;
 mod cmd;
 mod memory;
 mod oom;
+mod phrasing;
 mod progress;
 mod temp_files;
 
@@ -64,27 +65,25 @@ enum Command {
     Live(cmd::live::Args),
 }
 
-/// The error and its causes on one line, each cause once. The library's file errors already end with
-/// their cause (so a library user's `to_string()` says why), and anyhow's `{:#}` would repeat it:
-/// "a.mha: No such file or directory (os error 2): No such file or directory (os error 2)".
-pub(crate) fn error_message(error: &anyhow::Error) -> String {
-    let mut message = String::new();
-    for cause in error.chain() {
-        let text = cause.to_string();
-        if message.is_empty() {
-            message = text;
-        } else if !message.ends_with(&text) {
-            message.push_str(": ");
-            message.push_str(&text);
+impl Command {
+    /// Whose flags the library's option names are phrased in.
+    fn terms(&self) -> phrasing::Terms {
+        use phrasing::Terms;
+        match self {
+            Command::Extract(_) | Command::Batch(_) | Command::SlicerModule(_) => Terms::Extract,
+            Command::Fit(_) => Terms::Fit,
+            Command::Surface(_) => Terms::Surface,
+            Command::Compare(_) => Terms::Compare,
+            Command::Segment(_) | Command::Sample(_) => Terms::Segment,
+            _ => Terms::Library,
         }
     }
-    message
 }
 
 /// `--memory-report`: the estimate and the measured peak, in MB, and their ratio.
 fn memory_report_line() -> String {
     let mb = |b: u64| format!("{:.1} MB", b as f64 / 1e6);
-    let estimate = echosurf::budget::largest_estimate_bytes();
+    let estimate = memory::largest_estimate_bytes();
     let peak = memory::lifetime_peak_rss_bytes();
     let text = |b: Option<u64>| b.map(mb).unwrap_or_else(|| "none".into());
     let ratio = match (estimate, peak) {
@@ -122,6 +121,7 @@ fn main() -> ExitCode {
     // order that depends on the thread count, and outputs must be byte-identical for any thread count.
     faer::set_global_parallelism(faer::Par::Seq);
     let cli = Cli::parse();
+    let terms = cli.command.terms();
     let result = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
@@ -156,44 +156,8 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Err(e) => {
-            eprintln!("error: {}", error_message(&e));
+            eprintln!("error: {}", phrasing::error_message(&e, terms));
             ExitCode::FAILURE
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::error_message;
-    use anyhow::Context;
-
-    fn missing_file_error() -> echosurf::Error {
-        let source = std::io::Error::from(std::io::ErrorKind::NotFound);
-        echosurf::Error::io("sweep.mha", source)
-    }
-
-    #[test]
-    fn a_file_error_names_its_cause_once() {
-        let cause = std::io::Error::from(std::io::ErrorKind::NotFound).to_string();
-        let error = anyhow::Error::new(missing_file_error());
-        assert_eq!(error_message(&error), format!("sweep.mha: {cause}"));
-        let in_context = Err::<(), _>(missing_file_error())
-            .context("segmenting sweep.mha")
-            .unwrap_err();
-        assert_eq!(
-            error_message(&in_context),
-            format!("segmenting sweep.mha: sweep.mha: {cause}")
-        );
-    }
-
-    #[test]
-    fn causes_not_already_said_are_all_kept() {
-        let error = anyhow::anyhow!("the innermost")
-            .context("the middle")
-            .context("the outer");
-        assert_eq!(
-            error_message(&error),
-            "the outer: the middle: the innermost"
-        );
     }
 }

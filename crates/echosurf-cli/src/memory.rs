@@ -10,6 +10,23 @@ use std::sync::atomic::{AtomicU64, Ordering};
 /// per-stage resets.
 static PEAK_BEFORE_RESETS_BYTES: AtomicU64 = AtomicU64::new(0);
 
+/// The largest estimate a memory-budget check of this run compared, for `--memory-report` (0: none).
+static LARGEST_ESTIMATE_BYTES: AtomicU64 = AtomicU64::new(0);
+
+/// Keeps `bytes` when it is the largest estimate yet (the library tells each through
+/// [`echosurf::progress::Progress::memory_estimate`]).
+pub fn record_estimate(bytes: u64) {
+    LARGEST_ESTIMATE_BYTES.fetch_max(bytes, Ordering::Relaxed);
+}
+
+/// The largest estimate a budget check of this process made, if any made one.
+pub fn largest_estimate_bytes() -> Option<u64> {
+    match LARGEST_ESTIMATE_BYTES.load(Ordering::Relaxed) {
+        0 => None,
+        b => Some(b),
+    }
+}
+
 /// Resident-set high-water mark of this process in bytes, if the platform reports it.
 pub fn peak_rss_bytes() -> Option<u64> {
     echosurf::resources::read_status_kib("VmHWM:").map(|kib| kib * 1024)
@@ -47,6 +64,9 @@ impl echosurf::progress::Progress for StageMemory {
     }
     fn stage_peak_rss_bytes(&self, _stage: &str) -> Option<u64> {
         peak_rss_bytes()
+    }
+    fn memory_estimate(&self, bytes: u64) {
+        record_estimate(bytes);
     }
 }
 

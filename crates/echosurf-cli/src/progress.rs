@@ -62,4 +62,8 @@ impl Progress for BarProgress {
     fn stage_peak_rss_bytes(&self, stage: &str) -> Option<u64> {
         crate::memory::StageMemory.stage_peak_rss_bytes(stage)
     }
+
+    fn memory_estimate(&self, bytes: u64) {
+        crate::memory::record_estimate(bytes);
+    }
 }

@@ -267,6 +267,11 @@ fn extract_refuses_bad_requests_without_writing() {
         err.contains("iso-level 300") && err.contains("outside"),
         "{err}"
     );
+    // The library's option is named as the flag that sets it.
+    assert!(
+        err.contains("set --iso to auto") && !err.contains("ExtractOptions::"),
+        "{err}"
+    );
     assert!(!err.contains("panicked"));
     assert!(!mesh.exists());
 
@@ -361,25 +366,32 @@ fn ridge_sheet_lies_closer_to_the_surface_than_the_iso_sheath() {
     );
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--sheet middle"));
-    for (toml, message) in [
-        ("reach_mm = 0.0", "tuning.ridge.reach_mm must be a positive"),
+    for (section, toml, message) in [
         (
+            "ridge",
+            "reach_mm = 0.0",
+            "tuning.ridge.reach_mm must be a positive",
+        ),
+        (
+            "ridge",
             "bridge_mm = nan",
             "tuning.ridge.bridge_mm must be 0 or a positive",
         ),
         (
-            "weak_level_fraction = 1.0",
-            "tuning.ridge.weak_level_fraction must be a fraction",
+            "weak_echoes",
+            "level_fraction = 1.0",
+            "tuning.weak_echoes.level_fraction must be a fraction",
         ),
         (
-            "weak_reach_mm = 0.0",
-            "tuning.ridge.weak_reach_mm must be a positive",
+            "weak_echoes",
+            "reach_mm = 0.0",
+            "tuning.weak_echoes.reach_mm must be a positive",
         ),
     ] {
         let file = common::extract_config(
             dir.path(),
             "ridge.toml",
-            &format!("[tuning.ridge]\n{toml}\n"),
+            &format!("[tuning.{section}]\n{toml}\n"),
         );
         let bad = extract(
             &seq,

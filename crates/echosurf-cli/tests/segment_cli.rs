@@ -289,3 +289,22 @@ fn follow_band_keeps_a_drawn_band_on_its_structure() {
         "{drawn} {following}"
     );
 }
+
+#[test]
+fn a_segment_option_out_of_range_is_named_as_its_flag() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("masks.mha");
+    let mut args = vec!["segment".to_string()];
+    args.extend(spine_args());
+    args.extend(["--auto-init", "--edgel-floor=-1", "--out"].map(String::from));
+    args.push(out.display().to_string());
+    let result = echosurf(&args);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert_eq!(result.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("--edgel-floor: must be finite and >= 0")
+            && !stderr.contains("SegmentOptions::"),
+        "{stderr}"
+    );
+    assert!(!out.exists());
+}

@@ -4,16 +4,13 @@
 //! half-way. The voxel grid has its own (`voxel::estimated_memory_bytes`). Constants and the table they
 //! were measured on: docs/decisions/0028-memory-budget-estimates.md.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+pub use crate::resources::default_memory_budget_bytes;
 
 use crate::io::TrackedSequence;
+use crate::progress::Progress;
 use crate::rbf::SolverChoice;
-use crate::{Error, Result};
+use crate::{Error, OptionName, Phrase, Result};
 
-/// Fraction of the machine's memory a run may plan to use by default.
-const DEFAULT_FRACTION: f64 = 0.5;
-/// Budget when the machine's memory cannot be read.
-const FALLBACK_BUDGET_BYTES: u64 = 8 << 30;
 /// Band masks and smoothing buffers per pixel while segmenting.
 const SEGMENT_BYTES_PER_PIXEL: u64 = 2;
 /// Per binned sample: position (3 x f64), grey level (f32), frame (u32), its block (2 x u32), with
@@ -32,53 +29,36 @@ const FAST_FIT_BYTES_PER_CENTRE: u64 = 4096;
 /// meshes (the fitted model is resident when the check runs).
 const SURFACE_BYTES_PER_SEED: u64 = 7000;
 
-static LARGEST_ESTIMATE_BYTES: AtomicU64 = AtomicU64::new(0);
-
-/// Keeps `bytes` as this process's estimate of its peak resident memory when it is the largest yet
-/// (every budget check records the estimate it compared), for `--memory-report`.
-pub fn record_estimate(bytes: u64) {
-    LARGEST_ESTIMATE_BYTES.fetch_max(bytes, Ordering::Relaxed);
-}
-
-/// The largest estimate a budget check of this process made, if any made one.
-pub fn largest_estimate_bytes() -> Option<u64> {
-    match LARGEST_ESTIMATE_BYTES.load(Ordering::Relaxed) {
-        0 => None,
-        b => Some(b),
-    }
-}
-
 /// What the process holds now (binary, allocator, decoded inputs): the base every estimate adds the
 /// buffers still to come to. 0 where the platform does not report it.
 pub fn resident_bytes() -> u64 {
     crate::resources::current_rss_bytes().unwrap_or(0)
 }
 
-/// Records `need` and refuses it past `budget_bytes` with `message(need, budget)`.
-fn check_need(need: u64, budget_bytes: u64, message: impl FnOnce() -> String) -> Result<()> {
-    record_estimate(need);
+/// Tells `observer` the estimate `need` and refuses it past `budget_bytes` (set by
+/// [`OptionName::MemoryBudget`]) with `message()`.
+fn check_need(
+    need: u64,
+    budget_bytes: u64,
+    observer: &dyn Progress,
+    message: impl FnOnce() -> Phrase,
+) -> Result<()> {
+    observer.memory_estimate(need);
     if need <= budget_bytes {
         Ok(())
     } else {
-        Err(Error::ResourceLimit(message()))
+        Err(Error::OverBudget {
+            needed_bytes: need,
+            budget_bytes,
+            budget_option: Some(OptionName::MemoryBudget),
+            message: message(),
+        })
     }
 }
 
-/// Half of `MemTotal` from `/proc/meminfo`, or 8 GiB where that is unavailable.
-pub fn default_memory_budget_bytes() -> u64 {
-    std::fs::read_to_string("/proc/meminfo")
-        .ok()
-        .and_then(|text| {
-            let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
-            let kib: u64 = line["MemTotal:".len()..]
-                .trim()
-                .trim_end_matches("kB")
-                .trim()
-                .parse()
-                .ok()?;
-            Some((kib as f64 * 1024.0 * DEFAULT_FRACTION) as u64)
-        })
-        .unwrap_or(FALLBACK_BUDGET_BYTES)
+/// "raise" and the memory budget's option.
+fn or_raise_budget() -> Phrase {
+    Phrase::new("raise ").option(OptionName::MemoryBudget)
 }
 
 /// The buffers of one RBF extract run still to come once the bands are segmented, in bytes.
@@ -130,23 +110,28 @@ fn mb(bytes: u64) -> String {
 /// Up-front check of the RBF route, before segmenting: what is resident plus the segmentation's
 /// buffers over every pixel (a lower bound of the run; [`check_extract_budget_after_segmentation`]
 /// knows the kept pixels).
-pub fn check_extract_budget(sequence: &TrackedSequence, budget_bytes: u64) -> Result<()> {
+/// The estimate goes to `observer` ([`Progress::memory_estimate`]), as in every check here.
+pub fn check_extract_budget(
+    sequence: &TrackedSequence,
+    budget_bytes: u64,
+    observer: &dyn Progress,
+) -> Result<()> {
     let pixels = (sequence.width as u64)
         .saturating_mul(sequence.height as u64)
         .saturating_mul(sequence.frames.len() as u64);
     let resident = resident_bytes();
     let segment = pixels.saturating_mul(SEGMENT_BYTES_PER_PIXEL);
     let need = resident.saturating_add(segment);
-    check_need(need, budget_bytes, || {
-        format!(
+    check_need(need, budget_bytes, observer, || {
+        Phrase::new(format!(
             "extract would need at least {} before fitting ({} resident with the decoded frames, {} to \
-            segment {pixels} pixels) but the memory budget is {}: split the sequence (fewer frames) or \
-            raise --memory-budget",
+            segment {pixels} pixels) but the memory budget is {}: split the sequence (fewer frames) or ",
             mb(need),
             mb(resident),
             mb(segment),
             mb(budget_bytes)
-        )
+        ))
+        .then(or_raise_budget())
     })
 }
 
@@ -172,7 +157,7 @@ pub struct FitPlan<'a> {
 }
 
 /// Estimates the RBF route's peak once the bands are segmented: the samples from the kept pixels (one
-/// per bin), the fit of at most `--max-samples` of them with the solver `rbf::fit` will choose.
+/// per bin), the fit of at most `max_samples` of them with the solver `rbf::fit` will choose.
 pub fn estimate_extract_memory(
     counts: SegmentedCounts,
     options: FitPlan<'_>,
@@ -198,22 +183,25 @@ pub fn estimate_extract_memory(
 }
 
 /// Second check of the RBF route, after segmenting and before the samples are collected: refuses
-/// when the estimate exceeds `budget_bytes`, naming the parts and a `--max-samples` that would fit.
+/// when the estimate exceeds `budget_bytes`, naming the parts and a sample cap that would fit.
 pub fn check_extract_budget_after_segmentation(
     counts: SegmentedCounts,
     options: FitPlan<'_>,
     budget_bytes: u64,
+    observer: &dyn Progress,
 ) -> Result<()> {
     let e = estimate_extract_memory(counts, options);
-    check_need(e.total(), budget_bytes, || {
+    check_need(e.total(), budget_bytes, observer, || {
         let fixed = e
             .resident
             .saturating_add(e.normalised_frames)
             .saturating_add(e.samples);
         let advice = if fixed >= budget_bytes {
-            "the frames and their kept pixels alone take that: a narrower band, fewer frames or a \
-            larger --memory-budget"
-                .to_string()
+            Phrase::new(
+                "the frames and their kept pixels alone take that: a narrower band, fewer frames or a \
+                larger ",
+            )
+            .option(OptionName::MemoryBudget)
         } else {
             // Largest sample count whose fit fits in what is left.
             let room = budget_bytes - fixed;
@@ -226,12 +214,15 @@ pub fn check_extract_budget_after_segmentation(
                     hi = mid - 1;
                 }
             }
-            format!("--max-samples {lo} or fewer would fit, or raise --memory-budget")
+            Phrase::new("")
+                .option(OptionName::MaxSamples)
+                .text(format!(" {lo} or fewer would fit, or "))
+                .then(or_raise_budget())
         };
-        format!(
+        Phrase::new(format!(
             "extract would need about {} ({} resident with the frames and bands, normalised frames {}, \
             samples of {} kept pixels {}, fit {}; the surface is checked after the fit) but the memory \
-             budget is {}: {advice}",
+             budget is {}: ",
             mb(e.total()),
             mb(e.resident),
             mb(e.normalised_frames),
@@ -239,7 +230,8 @@ pub fn check_extract_budget_after_segmentation(
             mb(e.samples),
             mb(e.fit),
             mb(budget_bytes),
-        )
+        ))
+        .then(advice)
     })
 }
 
@@ -248,40 +240,52 @@ pub fn check_fit_budget(
     points: u64,
     options: &crate::rbf::FitOptions,
     budget_bytes: u64,
+    observer: &dyn Progress,
 ) -> Result<()> {
     let resident = resident_bytes();
     let fit = fit_bytes_with(points, options, PU_FIT_FRESH_BYTES_PER_SAMPLE);
     let need = resident.saturating_add(fit);
-    check_need(need, budget_bytes, || {
-        format!(
+    check_need(need, budget_bytes, observer, || {
+        Phrase::new(format!(
             "fitting {points} points would need about {} ({} resident, fit {}) but the memory budget \
-            is {}: fewer points (--max-centres, or thin the cloud), another --solver, or raise \
-            --memory-budget",
+            is {}: fewer points (",
             mb(need),
             mb(resident),
             mb(fit),
             mb(budget_bytes)
-        )
+        ))
+        .option(OptionName::FitMaxCentres)
+        .text(", or thin the cloud), another ")
+        .option(OptionName::FitSolver)
+        .text(", or ")
+        .then(or_raise_budget())
     })
 }
 
 /// Refuses surfacing from `seeds` seed points (the points near a level the surface is followed
 /// from; `extract` and `surface` take at most `pipeline::MAX_SURFACE_SEEDS`) at `resolution_mm` past
 /// `budget_bytes`. The fitted model is resident when this runs.
-pub fn check_surface_budget(seeds: u64, resolution_mm: f64, budget_bytes: u64) -> Result<()> {
+pub fn check_surface_budget(
+    seeds: u64,
+    resolution_mm: f64,
+    budget_bytes: u64,
+    observer: &dyn Progress,
+) -> Result<()> {
     let resident = resident_bytes();
     let surface = surface_bytes(seeds, resolution_mm);
     let need = resident.saturating_add(surface);
-    check_need(need, budget_bytes, || {
-        format!(
+    check_need(need, budget_bytes, observer, || {
+        Phrase::new(format!(
             "surfacing from {seeds} seed points at {resolution_mm} mm would need about {} ({} \
-             resident with the fitted model, surface {}) but the memory budget is {}: a coarser \
-             --resolution, or raise --memory-budget",
+             resident with the fitted model, surface {}) but the memory budget is {}: a coarser ",
             mb(need),
             mb(resident),
             mb(surface),
             mb(budget_bytes)
-        )
+        ))
+        .option(OptionName::SurfaceResolution)
+        .text(", or ")
+        .then(or_raise_budget())
     })
 }
 
@@ -316,6 +320,7 @@ pub fn check_compare_budget(
     truth: &crate::mesh::Mesh,
     options: &crate::metrics::CompareOptions,
     budget_bytes: u64,
+    observer: &dyn Progress,
 ) -> Result<()> {
     let mesh_samples = compare_sample_count(mesh.area_mm2(), options);
     let truth_samples = compare_sample_count(truth.area_mm2(), options);
@@ -326,19 +331,23 @@ pub fn check_compare_budget(
         .saturating_mul(COMPARE_BYTES_PER_TRIANGLE);
     let resident = resident_bytes();
     let need = resident.saturating_add(samples).saturating_add(meshes);
-    check_need(need, budget_bytes, || {
-        format!(
+    check_need(need, budget_bytes, observer, || {
+        Phrase::new(format!(
             "compare would place {mesh_samples} + {truth_samples} area samples at {} per mm^2 and \
              need about {} ({} resident with the meshes, samples {}, mesh search structures {}) but \
-             the memory budget is {}: lower --samples-per-mm2 or --max-samples, or raise \
-             --memory-budget",
+             the memory budget is {}: lower ",
             options.samples_per_mm2,
             mb(need),
             mb(resident),
             mb(samples),
             mb(meshes),
             mb(budget_bytes)
-        )
+        ))
+        .option(OptionName::CompareSamplesPerMm2)
+        .text(" or ")
+        .option(OptionName::CompareMaxSamples)
+        .text(", or ")
+        .then(or_raise_budget())
     })
 }
 
@@ -361,18 +370,40 @@ mod tests {
         );
     }
 
+    /// Keeps every estimate it is told.
+    #[derive(Default)]
+    struct Estimates(std::sync::Mutex<Vec<u64>>);
+
+    impl Progress for Estimates {
+        fn start(&self, _stage: &str, _total: u64) {}
+        fn advance(&self, _done: u64) {}
+        fn finish(&self) {}
+        fn memory_estimate(&self, bytes: u64) {
+            self.0.lock().unwrap().push(bytes);
+        }
+    }
+
     #[test]
-    fn the_largest_estimate_is_kept() {
-        record_estimate(5);
-        record_estimate(3);
-        assert!(largest_estimate_bytes().unwrap() >= 5);
+    fn every_check_tells_its_observer_the_estimate_it_compared() {
+        let estimates = Estimates::default();
+        check_need(5, 10, &estimates, || unreachable!()).unwrap();
+        check_need(30, 10, &estimates, || Phrase::new("over")).unwrap_err();
+        check_surface_budget(1000, 0.5, 0, &estimates).unwrap_err();
+        let told = estimates.0.lock().unwrap().clone();
+        assert_eq!(told[..2], [5, 30]);
+        assert!(told[2] >= 1000 * SURFACE_BYTES_PER_SEED, "{told:?}");
     }
 
     #[test]
     fn an_estimate_past_the_budget_is_refused_with_the_message() {
-        assert!(check_need(10, 10, || unreachable!()).is_ok());
-        let e = check_need(11, 10, || "over".into()).unwrap_err();
-        assert!(matches!(e, Error::ResourceLimit(m) if m == "over"));
+        assert!(check_need(10, 10, &crate::progress::NoProgress, || unreachable!()).is_ok());
+        let e =
+            check_need(11, 10, &crate::progress::NoProgress, || Phrase::new("over")).unwrap_err();
+        assert!(matches!(
+            e,
+            Error::OverBudget { needed_bytes: 11, budget_bytes: 10, budget_option: Some(OptionName::MemoryBudget), ref message }
+                if message.to_string() == "over"
+        ));
     }
 
     #[test]
@@ -397,12 +428,6 @@ mod tests {
             options,
         );
         assert_eq!(bone.normalised_frames, 400);
-    }
-
-    #[test]
-    fn default_budget_is_positive_and_below_total_memory() {
-        let b = default_memory_budget_bytes();
-        assert!(b >= 64 << 20, "{b}");
     }
 
     #[test]

@@ -47,8 +47,9 @@ pub mod render;
 pub mod resources;
 pub mod samples;
 pub mod segment;
+mod serde_forms;
 pub mod spatial;
 pub mod surface;
 pub mod voxel;
 
-pub use error::{Error, FormatProblem, Result};
+pub use error::{Error, FormatProblem, OptionName, OptionsErrorKind, Phrase, Result};

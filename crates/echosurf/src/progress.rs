@@ -19,6 +19,9 @@ pub trait Progress: Sync {
     fn stage_peak_rss_bytes(&self, _stage: &str) -> Option<u64> {
         None
     }
+    /// A memory-budget check compared `bytes`, its estimate of the run's peak resident memory (an
+    /// application may keep the largest: the CLI's `--memory-report`).
+    fn memory_estimate(&self, _bytes: u64) {}
 }
 
 /// Progress sink that discards everything.

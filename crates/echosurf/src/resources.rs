@@ -12,8 +12,20 @@ use std::time::Instant;
 use crate::progress::{NoProgress, Progress};
 
 thread_local! {
-    /// How many [`fallibly`] calls this thread is inside.
+    /// How many [`fallibly`] calls this thread is inside. Thread-local state, kept on purpose: a
+    /// global allocator is told nothing but the layout, so the only way for a `try_reserve` to say
+    /// "I handle failure" is state of the allocating thread; per thread and scoped to one call, it is
+    /// not shared by concurrent runs (docs/decisions/0033-library-state.md).
     static FALLIBLE_DEPTH: Cell<u32> = const { Cell::new(0) };
+}
+
+/// Leaves the [`fallibly`] scope when dropped, so a panic inside it does not leave the thread marked.
+struct FallibleScope;
+
+impl Drop for FallibleScope {
+    fn drop(&mut self) {
+        FALLIBLE_DEPTH.with(|d| d.set(d.get() - 1));
+    }
 }
 
 /// Runs `reserve` (a `try_reserve` whose failure the caller turns into an error) telling a process's
@@ -21,9 +33,8 @@ thread_local! {
 /// the process (the CLI's allocator ends it cleanly on any other failure).
 pub fn fallibly<T>(reserve: impl FnOnce() -> T) -> T {
     FALLIBLE_DEPTH.with(|d| d.set(d.get() + 1));
-    let out = reserve();
-    FALLIBLE_DEPTH.with(|d| d.set(d.get() - 1));
-    out
+    let _scope = FallibleScope;
+    reserve()
 }
 
 /// True inside [`fallibly`] on this thread (for a global allocator's failure path).
@@ -43,6 +54,29 @@ pub fn try_zeroed_vec<T: Clone + Default>(n: usize, what: &str) -> crate::Result
     })?;
     v.resize(n, T::default());
     Ok(v)
+}
+
+/// Fraction of the machine's memory a run may plan to use by default.
+const DEFAULT_BUDGET_FRACTION: f64 = 0.5;
+/// Budget when the machine's memory cannot be read.
+const FALLBACK_BUDGET_BYTES: u64 = 8 << 30;
+
+/// The default memory budget: half of `MemTotal` from `/proc/meminfo`, or 8 GiB where that is
+/// unavailable (also `budget::default_memory_budget_bytes`).
+pub fn default_memory_budget_bytes() -> u64 {
+    std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|text| {
+            let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+            let kib: u64 = line["MemTotal:".len()..]
+                .trim()
+                .trim_end_matches("kB")
+                .trim()
+                .parse()
+                .ok()?;
+            Some((kib as f64 * 1024.0 * DEFAULT_BUDGET_FRACTION) as u64)
+        })
+        .unwrap_or(FALLBACK_BUDGET_BYTES)
 }
 
 /// Current resident set size in bytes, if the platform reports it.
@@ -95,6 +129,11 @@ impl Default for StageMeter<'_> {
 }
 
 impl<'a> StageMeter<'a> {
+    /// The observer the stages are announced to.
+    pub fn observer(&self) -> &'a dyn Progress {
+        self.observer
+    }
+
     /// A meter announcing its stages to `observer` (the caller's progress sink).
     pub fn new(observer: &'a dyn Progress) -> Self {
         Self {
@@ -140,6 +179,16 @@ mod tests {
             || fallibly(allocation_is_fallible) && allocation_is_fallible()
         ));
         assert!(!allocation_is_fallible());
+        // A panic inside the scope leaves the thread unmarked.
+        let caught = std::panic::catch_unwind(|| fallibly(|| panic!("inside")));
+        assert!(caught.is_err());
+        assert!(!allocation_is_fallible());
+    }
+
+    #[test]
+    fn the_default_budget_is_half_the_machine_or_the_fallback() {
+        let b = default_memory_budget_bytes();
+        assert!(b >= 64 << 20, "{b}");
     }
 
     /// Counts the announcements and reports a made-up peak per stage.

@@ -331,7 +331,7 @@ pub const ISO_FLOOR_FRACTION: f32 = 0.18;
 /// medians above the peak. Unlike a two-class split of all kept intensities, this is not fooled by a
 /// band that is mostly acoustic shadow. The strong-echo level is the median of the brighter class of a
 /// two-class (Otsu) split of the column peaks: the columns that cross an echo facing the beam, however
-/// few (on the simulated phantoms 129-143 against the simulator's 134-141 at normal incidence).
+/// few (checked against the simulator's level: docs/decisions/0035-figures-from-code-comments.md).
 /// `None` without usable columns.
 pub fn estimate_echo_levels(
     sequence: &TrackedSequence,

@@ -347,7 +347,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             } else {
                 match run_job(dir, job) {
                     Ok(outcome) => outcome,
-                    Err(e) => Outcome::Failed(crate::error_message(&e)),
+                    Err(e) => Outcome::Failed(crate::phrasing::error_message(
+                        &e,
+                        crate::phrasing::Terms::Extract,
+                    )),
                 }
             };
             record(k, outcome)?;

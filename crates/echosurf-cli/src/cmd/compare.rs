@@ -135,7 +135,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ..CompareOptions::default()
     };
     let budget = super::extract::memory_budget_bytes(args.memory_budget)?;
-    echosurf::budget::check_compare_budget(&mesh, &truth, &options, budget).with_context(|| {
+    echosurf::budget::check_compare_budget(
+        &mesh,
+        &truth,
+        &options,
+        budget,
+        &crate::memory::StageMemory,
+    )
+    .with_context(|| {
         format!(
             "comparing {} with {}",
             args.mesh.display(),

@@ -65,8 +65,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ..FitOptions::default()
     };
     let budget = super::extract::memory_budget_bytes(args.memory_budget)?;
-    echosurf::budget::check_fit_budget(values.len() as u64, &options, budget)
-        .with_context(|| format!("fitting {}", args.points.display()))?;
+    echosurf::budget::check_fit_budget(
+        values.len() as u64,
+        &options,
+        budget,
+        &crate::memory::StageMemory,
+    )
+    .with_context(|| format!("fitting {}", args.points.display()))?;
     let progress = crate::progress::BarProgress::new();
     let (model, report) = fit(&cloud.positions, &values, &options, &progress)
         .with_context(|| format!("fitting {}", args.points.display()))?;

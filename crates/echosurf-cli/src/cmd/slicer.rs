@@ -269,6 +269,9 @@ impl echosurf::progress::Progress for FilterProgress {
             ));
         }
     }
+    fn memory_estimate(&self, bytes: u64) {
+        crate::memory::record_estimate(bytes);
+    }
 }
 
 /// `echosurf extract` as the module runs it: its arguments, parsed by extract's own parser.

@@ -83,8 +83,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.trust_distance,
     );
     let budget = super::extract::memory_budget_bytes(args.memory_budget)?;
-    echosurf::budget::check_surface_budget(domain.seeds.len() as u64, args.resolution, budget)
-        .with_context(|| format!("surfacing {}", args.model.display()))?;
+    echosurf::budget::check_surface_budget(
+        domain.seeds.len() as u64,
+        args.resolution,
+        budget,
+        &crate::memory::StageMemory,
+    )
+    .with_context(|| format!("surfacing {}", args.model.display()))?;
     let options = SurfaceOptions {
         resolution_mm: args.resolution,
         trust_distance_mm: args.trust_distance,

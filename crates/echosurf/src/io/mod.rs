@@ -8,6 +8,7 @@ pub mod metaimage;
 pub mod nrrd;
 pub mod plus_config;
 pub mod ply;
+mod polygons;
 pub mod pose;
 mod seq_decode;
 pub mod sequence;

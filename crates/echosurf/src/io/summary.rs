@@ -113,7 +113,7 @@ pub fn summarise(
             notes.push("tracking-only sequence: no images, sweeps follow the probe origin".into());
         } else {
             notes.push(
-                "frame positions need the probe calibration (--calibration PLUS device-set XML); \
+                "frame positions need the probe calibration (a PLUS device-set XML); \
                  sweeps follow the tracked probe origin and no world bounds are given"
                     .into(),
             );
@@ -382,7 +382,7 @@ impl SequenceSummary {
         if self.sweeps.len() > MAX_SWEEP_LINES {
             let _ = writeln!(
                 s,
-                "    ... {} more sweeps (--json lists all)",
+                "    ... {} more sweeps (the JSON summary lists all)",
                 self.sweeps.len() - MAX_SWEEP_LINES
             );
         }

@@ -466,7 +466,7 @@ pub(crate) fn read(path: &Path, bytes: &[u8]) -> Result<VtkMesh> {
                     "POLYGONS" => {
                         saw_polygons = true;
                         for (c, cell) in cells.iter().enumerate() {
-                            crate::io::mesh_io::push_polygon(
+                            crate::io::polygons::push_polygon(
                                 path,
                                 &format!("VTK polygon {c}"),
                                 cell,
@@ -508,7 +508,7 @@ pub(crate) fn read(path: &Path, bytes: &[u8]) -> Result<VtkMesh> {
                 }
                 let ty = r.data_type(attribute.get(2), "NORMALS")?;
                 let values = r.values(n.saturating_mul(3), ty, "NORMALS")?;
-                normals = crate::io::mesh_io::unit_normals(
+                normals = crate::io::polygons::unit_normals(
                     values.chunks_exact(3).map(|c| DVec3::new(c[0], c[1], c[2])),
                 );
                 break;

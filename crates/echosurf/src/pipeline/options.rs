@@ -12,7 +12,7 @@ use super::{
     VoxelRouteOptions, WeakEchoes,
 };
 use crate::io::ReferenceChoice;
-use crate::rbf::{FitOptions, SolverChoice};
+use crate::rbf::FitOptions;
 use crate::segment::{InitialBand, SegmentOptions};
 use crate::surface::{SheetOptions, SurfaceOptions};
 
@@ -26,7 +26,7 @@ pub struct OptionError {
     pub problem: String,
 }
 
-/// Which route turns the frames into a surface (its settings are in [`VoxelTuning`]).
+/// Which route turns the frames into a surface (its settings are in [`Tuning::voxel`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum MethodChoice {
@@ -103,11 +103,17 @@ pub struct Tuning {
     pub trust_distance_mm: Option<f64>,
     pub segment: SegmentOptions,
     pub sampling: SamplingTuning,
-    pub fit: FitTuning,
-    pub surface: SurfaceTuning,
-    pub ridge: RidgeTuning,
+    /// The RBF fit; its smoothing and seed are the user tier's.
+    pub fit: FitOptions,
+    /// The surfacer; its resolution is the user tier's, its trust distance `trust_distance_mm`.
+    pub surface: SurfaceOptions,
+    /// The echo-ridge sheet ([`Sheet::EchoRidge`], and `auto` where it picks it).
+    pub ridge: SheetOptions,
+    /// Weaker echoes extending the ridge sheet.
+    pub weak_echoes: WeakEchoes,
     pub cleanup: CleanupTuning,
-    pub voxel: VoxelTuning,
+    /// The voxel route ([`MethodChoice::Voxel`]); its memory budget is `memory_budget_mb`.
+    pub voxel: VoxelRouteOptions,
 }
 
 impl Default for Tuning {
@@ -118,11 +124,12 @@ impl Default for Tuning {
             trust_distance_mm: None,
             segment: SegmentOptions::default(),
             sampling: SamplingTuning::default(),
-            fit: FitTuning::default(),
-            surface: SurfaceTuning::default(),
-            ridge: RidgeTuning::default(),
+            fit: FitOptions::default(),
+            surface: SurfaceOptions::default(),
+            ridge: SheetOptions::default(),
+            weak_echoes: WeakEchoes::default(),
             cleanup: CleanupTuning::default(),
-            voxel: VoxelTuning::default(),
+            voxel: VoxelRouteOptions::default(),
         }
     }
 }
@@ -144,109 +151,6 @@ impl Default for SamplingTuning {
         SamplingTuning {
             bin_mm: 0.4,
             echo_margin_mm: DEFAULT_ECHO_MARGIN_MM,
-        }
-    }
-}
-
-/// The RBF fit, besides the smoothing (user tier) and the seed (user tier).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-#[non_exhaustive]
-pub struct FitTuning {
-    /// `auto` (dense up to `direct_max_points`, partition of unity above), `direct`, `pu` or `fast`.
-    #[serde(with = "solver_serde")]
-    pub solver: SolverChoice,
-    /// Largest allowed |s(x_i) - f_i - w l_i| (grey levels).
-    pub accuracy_grey: f64,
-    /// Relative accuracy of the fast evaluator.
-    pub eval_accuracy: f64,
-    /// Samples closer than this (mm) are merged into one.
-    pub merge_distance_mm: f64,
-    /// Largest problem the `auto` solver solves densely.
-    pub direct_max_points: usize,
-    /// Krylov iteration budget of the `fast` solver.
-    pub max_iterations: usize,
-    /// Partition of unity: samples per leaf cell, support expansion per side (relative to the leaf's
-    /// half-size) and its minimum (mm).
-    pub pu_leaf_points: usize,
-    pub pu_overlap: f64,
-    pub pu_min_overlap_mm: f64,
-}
-
-impl Default for FitTuning {
-    fn default() -> Self {
-        let f = FitOptions::default();
-        FitTuning {
-            solver: f.solver,
-            accuracy_grey: f.accuracy,
-            eval_accuracy: f.eval_accuracy,
-            merge_distance_mm: f.merge_distance_mm,
-            direct_max_points: f.direct_max_points,
-            max_iterations: f.max_iterations,
-            pu_leaf_points: f.pu_leaf_points,
-            pu_overlap: f.pu_overlap,
-            pu_min_overlap_mm: f.pu_min_overlap_mm,
-        }
-    }
-}
-
-/// The surfacer, besides its resolution (user tier) and the trust distance ([`Tuning`]).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-#[non_exhaustive]
-pub struct SurfaceTuning {
-    /// How far (cells) a seed whose own cell is not crossed looks for the surface.
-    pub seed_search_radius_cells: u32,
-    /// Size of the clustering cells relative to the lattice (larger: coarser mesh).
-    pub cluster_cell_factor: f64,
-    /// Newton steps at most per vertex when putting vertices back on the surface.
-    pub max_newton_steps: u32,
-    /// A vertex is on the surface when its first-order distance is below this (mm).
-    pub surface_tolerance_mm: f64,
-}
-
-impl Default for SurfaceTuning {
-    fn default() -> Self {
-        let s = SurfaceOptions::default();
-        SurfaceTuning {
-            seed_search_radius_cells: s.seed_search_radius_cells,
-            cluster_cell_factor: s.cluster_cell_factor,
-            max_newton_steps: s.max_newton_steps,
-            surface_tolerance_mm: s.surface_tolerance_mm,
-        }
-    }
-}
-
-/// The echo-ridge sheet ([`Sheet::EchoRidge`], and `auto` where it picks it).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-#[non_exhaustive]
-pub struct RidgeTuning {
-    /// Distance (mm) over which the sheet averages the ridge points.
-    pub smoothing_mm: f64,
-    /// How far (mm) the sheet may reach from the nearest ridge point.
-    pub reach_mm: f64,
-    /// Also bridge gaps up to this wide (mm) where points surround them on a common plane; 0 = off.
-    pub bridge_mm: f64,
-    /// Holes whose boundary is at most this long (mm) are closed; 0 keeps them all.
-    pub max_hole_perimeter_mm: f64,
-    /// Weaker echoes whose peak passes a level this fraction of the way from the iso-level down to
-    /// the background extend the sheet where they continue a strong echo's ridge; 0 = off.
-    pub weak_level_fraction: f64,
-    /// How far (mm) a weak echo's ridge may continue from a strong one.
-    pub weak_reach_mm: f64,
-}
-
-impl Default for RidgeTuning {
-    fn default() -> Self {
-        let (sheet, weak) = (SheetOptions::default(), WeakEchoes::default());
-        RidgeTuning {
-            smoothing_mm: sheet.smoothing_mm,
-            reach_mm: sheet.reach_mm,
-            bridge_mm: sheet.bridge_mm,
-            max_hole_perimeter_mm: sheet.max_hole_perimeter_mm,
-            weak_level_fraction: weak.level_fraction,
-            weak_reach_mm: weak.reach_mm,
         }
     }
 }
@@ -278,28 +182,6 @@ impl Default for CleanupTuning {
             min_echo_frames: DEFAULT_MIN_ECHO_FRAMES,
             bridge_gap_mm: DEFAULT_BRIDGE_GAP_MM,
             trim_rim_rings: 0,
-        }
-    }
-}
-
-/// The voxel route ([`MethodChoice::Voxel`]); its memory budget is [`Tuning::memory_budget_mb`].
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-#[non_exhaustive]
-pub struct VoxelTuning {
-    /// Grid spacing (mm); `None` (`"auto"`): the calibration's OutputSpacing, else the resolution.
-    #[serde(with = "auto_f64")]
-    pub spacing_mm: Option<f64>,
-    /// Sigma of the Gaussian pre-smoothing (mm); 0 = none.
-    pub smoothing_sigma_mm: f64,
-}
-
-impl Default for VoxelTuning {
-    fn default() -> Self {
-        let v = VoxelRouteOptions::default();
-        VoxelTuning {
-            spacing_mm: v.spacing_mm,
-            smoothing_sigma_mm: v.smoothing_sigma_mm,
         }
     }
 }
@@ -379,12 +261,12 @@ impl ExtractConfig {
         )?;
         let f = &t.fit;
         check(
-            f.accuracy_grey.is_finite() && f.accuracy_grey > 0.0,
+            f.accuracy.is_finite() && f.accuracy > 0.0,
             "tuning.fit.accuracy_grey",
             || {
                 format!(
                     "must be a positive number of grey levels, got {}",
-                    f.accuracy_grey
+                    f.accuracy
                 )
             },
         )?;
@@ -424,7 +306,8 @@ impl ExtractConfig {
         let r = &t.ridge;
         positive_mm("tuning.ridge.smoothing_mm", r.smoothing_mm)?;
         positive_mm("tuning.ridge.reach_mm", r.reach_mm)?;
-        positive_mm("tuning.ridge.weak_reach_mm", r.weak_reach_mm)?;
+        let w = &t.weak_echoes;
+        positive_mm("tuning.weak_echoes.reach_mm", w.reach_mm)?;
         non_negative("tuning.ridge.bridge_mm", r.bridge_mm, " of mm")?;
         non_negative(
             "tuning.ridge.max_hole_perimeter_mm",
@@ -432,12 +315,12 @@ impl ExtractConfig {
             " of mm",
         )?;
         check(
-            r.weak_level_fraction.is_finite() && (0.0..1.0).contains(&r.weak_level_fraction),
-            "tuning.ridge.weak_level_fraction",
+            w.level_fraction.is_finite() && (0.0..1.0).contains(&w.level_fraction),
+            "tuning.weak_echoes.level_fraction",
             || {
                 format!(
                     "must be a fraction in [0, 1) of the way from the iso-level to the background, got {}",
-                    r.weak_level_fraction
+                    w.level_fraction
                 )
             },
         )?;
@@ -467,15 +350,11 @@ impl ExtractConfig {
     /// [`Self::validate`] first.
     pub fn to_extract_options(&self, init: InitialBand) -> ExtractOptions {
         let (u, t) = (&self.user, &self.tuning);
-        let fit_defaults = FitOptions::default();
         let (c, keep_all) = (&t.cleanup, !u.cleanup);
         ExtractOptions {
             method: match u.method {
                 MethodChoice::Rbf => Method::Rbf,
-                MethodChoice::Voxel => Method::Voxel(VoxelRouteOptions {
-                    spacing_mm: t.voxel.spacing_mm,
-                    smoothing_sigma_mm: t.voxel.smoothing_sigma_mm,
-                }),
+                MethodChoice::Voxel => Method::Voxel(t.voxel.clone()),
             },
             iso: u.iso.clone(),
             init,
@@ -485,25 +364,12 @@ impl ExtractConfig {
             seed: u.seed,
             fit: FitOptions {
                 smoothing: u.smoothing_mm,
-                accuracy: t.fit.accuracy_grey,
-                eval_accuracy: t.fit.eval_accuracy,
                 seed: u.seed,
-                merge_distance_mm: t.fit.merge_distance_mm,
-                solver: t.fit.solver,
-                direct_max_points: t.fit.direct_max_points,
-                max_iterations: t.fit.max_iterations,
-                pu_leaf_points: t.fit.pu_leaf_points,
-                pu_overlap: t.fit.pu_overlap,
-                pu_min_overlap_mm: t.fit.pu_min_overlap_mm,
-                ..fit_defaults
+                ..t.fit.clone()
             },
             surface: SurfaceOptions {
                 resolution_mm: u.resolution_mm,
-                seed_search_radius_cells: t.surface.seed_search_radius_cells,
-                cluster_cell_factor: t.surface.cluster_cell_factor,
-                max_newton_steps: t.surface.max_newton_steps,
-                surface_tolerance_mm: t.surface.surface_tolerance_mm,
-                ..SurfaceOptions::default()
+                ..t.surface.clone()
             },
             trust_distance_mm: t.trust_distance_mm,
             sample_bin_mm: t.sampling.bin_mm,
@@ -522,50 +388,12 @@ impl ExtractConfig {
             bridge_gap_mm: if keep_all { 0.0 } else { c.bridge_gap_mm },
             trim_rim_rings: if keep_all { 0 } else { c.trim_rim_rings },
             sheet: u.sheet,
-            echo_sheet: SheetOptions {
-                smoothing_mm: t.ridge.smoothing_mm,
-                reach_mm: t.ridge.reach_mm,
-                bridge_mm: t.ridge.bridge_mm,
-                max_hole_perimeter_mm: t.ridge.max_hole_perimeter_mm,
-            },
-            weak_echoes: WeakEchoes {
-                level_fraction: t.ridge.weak_level_fraction,
-                reach_mm: t.ridge.weak_reach_mm,
-            },
+            echo_sheet: t.ridge.clone(),
+            weak_echoes: t.weak_echoes.clone(),
             memory_budget_bytes: Some(match t.memory_budget_mb {
                 Some(mb) => (mb * 1e6) as u64,
-                None => crate::budget::default_memory_budget_bytes(),
+                None => crate::resources::default_memory_budget_bytes(),
             }),
-        }
-    }
-}
-
-/// `Option<f64>` as a number or `"auto"` (TOML has no null).
-mod auto_f64 {
-    use serde::{Deserialize, Deserializer, Serialize, Serializer, de::Error};
-
-    #[derive(Serialize, Deserialize)]
-    #[serde(untagged)]
-    enum AutoOr {
-        Value(f64),
-        Word(String),
-    }
-
-    pub fn serialize<S: Serializer>(value: &Option<f64>, s: S) -> Result<S::Ok, S::Error> {
-        match value {
-            Some(v) => AutoOr::Value(*v),
-            None => AutoOr::Word("auto".into()),
-        }
-        .serialize(s)
-    }
-
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
-        match AutoOr::deserialize(d)? {
-            AutoOr::Value(v) => Ok(Some(v)),
-            AutoOr::Word(w) if w.eq_ignore_ascii_case("auto") => Ok(None),
-            AutoOr::Word(w) => Err(D::Error::custom(format!(
-                "expected a number or \"auto\", got \"{w}\""
-            ))),
         }
     }
 }
@@ -604,47 +432,13 @@ mod iso_serde {
     }
 }
 
-/// A unit-like enum as one of a few lower-case words.
-macro_rules! word_serde {
-    ($module:ident, $type:ty, [$($word:literal => $value:expr),+ $(,)?]) => {
-        mod $module {
-            use serde::{Deserialize, Deserializer, Serializer, de::Error};
-
-            #[allow(unused_imports)]
-            use super::*;
-
-            pub fn serialize<S: Serializer>(value: &$type, s: S) -> Result<S::Ok, S::Error> {
-                $(if *value == $value {
-                    return s.serialize_str($word);
-                })+
-                unreachable!("every value has a word")
-            }
-
-            pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<$type, D::Error> {
-                let word = String::deserialize(d)?;
-                $(if word.eq_ignore_ascii_case($word) {
-                    return Ok($value);
-                })+
-                Err(D::Error::custom(format!(
-                    "expected one of {}, got \"{word}\"",
-                    [$($word),+].join(", ")
-                )))
-            }
-        }
-    };
-}
+use crate::serde_forms::{auto_f64, word_serde};
 
 word_serde!(sheet_serde, Sheet, ["auto" => Sheet::Auto, "iso" => Sheet::Iso, "ridge" => Sheet::EchoRidge]);
 word_serde!(world_serde, ReferenceChoice, [
     "auto" => ReferenceChoice::Auto,
     "tracker" => ReferenceChoice::Tracker,
     "reference" => ReferenceChoice::Reference,
-]);
-word_serde!(solver_serde, SolverChoice, [
-    "auto" => SolverChoice::Auto,
-    "direct" => SolverChoice::Direct,
-    "pu" => SolverChoice::PartitionOfUnity,
-    "fast" => SolverChoice::Fast,
 ]);
 
 #[cfg(test)]

@@ -41,10 +41,12 @@ pub const MIN_DATA_WEIGHT: f64 = 0.3;
 
 /// Settings of the voxel route besides those it shares with the RBF route (iso-levels, segmentation
 /// for `--iso auto`, surfacer resolution as the default spacing).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct VoxelRouteOptions {
-    /// Isotropic grid spacing (mm). `None`: the configuration's `OutputSpacing` if it has one, else the
-    /// surfacer resolution (`ExtractOptions::surface.resolution_mm`).
+    /// Isotropic grid spacing (mm). `None` (`"auto"` in the TOML): the configuration's
+    /// `OutputSpacing` if it has one, else the surfacer resolution (`ExtractOptions::surface.resolution_mm`).
+    #[serde(with = "crate::serde_forms::auto_f64")]
     pub spacing_mm: Option<f64>,
     /// Sigma of the Gaussian pre-smoothing (mm); 0 = none. The grid's memory budget is
     /// [`ExtractOptions::memory_budget_bytes`] (`None`: the reconstruction's default).

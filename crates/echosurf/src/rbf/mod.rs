@@ -38,7 +38,7 @@ pub use reference::{definition_max_misfit, definition_value};
 pub use synthetic::ultrasound_like_samples;
 
 use crate::progress::Progress;
-use crate::{Error, Result};
+use crate::{Error, OptionName, OptionsErrorKind, Phrase, Result};
 
 /// Which linear solver [`fit`] uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
@@ -48,35 +48,45 @@ pub enum SolverChoice {
     Auto,
     /// Dense LU, O(N^2) memory, O(N^3) time: the reference.
     Direct,
-    /// The *global* spline: treecode + two-level Schwarz-preconditioned GMRES (accurate to the fitting
-    /// accuracy; ~50x slower than partition of unity at 100k samples: 30-40 s vs 0.7 s on one core).
+    /// The *global* spline: treecode + two-level Schwarz-preconditioned GMRES, accurate to the fitting
+    /// accuracy but much slower than partition of unity (docs/decisions/0035-figures-from-code-comments.md).
     Fast,
     /// Partition of unity: local dense fits on overlapping patches blended by Wendland weights
     /// (O(N), parallel); not the single global spline, but agrees with it to within the local fit error.
     PartitionOfUnity,
 }
 
-/// Parameters of [`fit`].
-#[derive(Debug, Clone, PartialEq)]
+/// Parameters of [`fit`]; also the `[tuning.fit]` section of `extract`'s options (the TOML has
+/// no smoothing, seed or centre reduction: `extract` takes the first two from its user tier and does
+/// not reduce centres).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct FitOptions {
     /// Smoothing weight w >= 0, in mm (grey level per grey-level/mm): the fit satisfies
     /// `f_i - s(x_i) = -w l_i`; larger is smoother, w = 0 interpolates, w -> infinity gives the
     /// least-squares linear trend. Sensible values are comparable to the sample spacing or a few times it.
+    #[serde(skip)]
     pub smoothing: f64,
     /// Fitting accuracy in grey levels: the solve stops when `max_i |f_i - s(x_i) - w l_i| <= accuracy`
     /// (at w = 0 this is the largest data misfit).
+    #[serde(rename = "accuracy_grey")]
     pub accuracy: f64,
     /// Relative accuracy of the fast evaluator (far-field error relative to the sum of absolute
     /// contributions); also used for the products inside the fast solver.
     pub eval_accuracy: f64,
     /// Upper bound on the number of centres; fewer than the samples implies greedy reduction.
+    #[serde(skip)]
     pub max_centres: Option<usize>,
     /// Greedy centre reduction (Carr et al. 2001): fit a subset, add the worst-fitted samples, repeat.
+    #[serde(skip)]
     pub reduce_centres: bool,
     /// Seed of the random initial subset of the centre reduction.
+    #[serde(skip)]
     pub seed: u64,
     /// Samples closer than this (mm) are merged into one, with the mean value.
     pub merge_distance_mm: f64,
+    /// `auto`, `direct`, `pu` or `fast` in the TOML.
+    #[serde(with = "solver_words")]
     pub solver: SolverChoice,
     /// Largest problem [`SolverChoice::Auto`] solves densely.
     pub direct_max_points: usize,
@@ -109,6 +119,13 @@ impl Default for FitOptions {
         }
     }
 }
+
+crate::serde_forms::word_serde!(solver_words, SolverChoice, [
+    "auto" => SolverChoice::Auto,
+    "direct" => SolverChoice::Direct,
+    "pu" => SolverChoice::PartitionOfUnity,
+    "fast" => SolverChoice::Fast,
+]);
 
 /// What [`fit`] did.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -201,17 +218,20 @@ pub fn fit(
             (report.max_data_misfit, report.rms_data_misfit) = (max_m, rms_m);
         }
         if report.max_residual.is_nan() || report.max_residual > options.accuracy {
-            return Err(Error::Numerical(format!(
-                "RBF fit ({:?} solver, {} samples, smoothing {} mm): the largest system residual \
-                 |f_i - s(x_i) + w l_i| of the fitted model is {:.4} grey levels, above the \
-                 requested accuracy {}; {}",
-                sub.solver,
-                pts.len(),
-                options.smoothing,
-                report.max_residual,
-                options.accuracy,
-                accuracy_advice(sub.solver)
-            )));
+            return Err(Error::Options {
+                kind: OptionsErrorKind::Numerical,
+                message: Phrase::new(format!(
+                    "RBF fit ({:?} solver, {} samples, smoothing {} mm): the largest system residual \
+                     |f_i - s(x_i) + w l_i| of the fitted model is {:.4} grey levels, above the \
+                     requested accuracy {}; ",
+                    sub.solver,
+                    pts.len(),
+                    options.smoothing,
+                    report.max_residual,
+                    options.accuracy,
+                ))
+                .then(accuracy_advice(sub.solver)),
+            });
         }
         sub.model
     };
@@ -225,15 +245,24 @@ pub fn fit(
 }
 
 /// What to change when a solver misses the accuracy.
-fn accuracy_advice(solver: SolverChoice) -> &'static str {
+fn accuracy_advice(solver: SolverChoice) -> Phrase {
+    use OptionName::{FitAccuracy, FitSmoothing, FitSolver};
+    let raise_both = Phrase::new("raise ")
+        .option(FitAccuracy)
+        .text(" or ")
+        .option(FitSmoothing);
     match solver {
-        SolverChoice::PartitionOfUnity => {
-            "raise --accuracy or --smoothing, or use --solver fast (the global spline)"
-        }
+        SolverChoice::PartitionOfUnity => raise_both
+            .text(", or set ")
+            .option(FitSolver)
+            .text(" to fast (the global spline)"),
         SolverChoice::Fast => {
-            "raise --accuracy or --smoothing (the model's evaluation error is part of the figure)"
+            raise_both.text(" (the model's evaluation error is part of the figure)")
         }
-        _ => "raise --smoothing (near-coincident samples with different values) or --accuracy",
+        _ => Phrase::new("raise ")
+            .option(FitSmoothing)
+            .text(" (near-coincident samples with different values) or ")
+            .option(FitAccuracy),
     }
 }
 
@@ -436,15 +465,21 @@ pub fn dense_solve_bytes(size: usize) -> u128 {
 /// Refuses a dense solve that would not fit the memory budget (half the machine's memory).
 fn check_dense_memory(size: usize) -> Result<()> {
     let needed = dense_solve_bytes(size);
-    let budget = crate::budget::default_memory_budget_bytes();
+    let budget = crate::resources::default_memory_budget_bytes();
     if needed > u128::from(budget) {
-        return Err(Error::ResourceLimit(format!(
-            "dense RBF solve of {size} unknowns needs {:.1} GB (two {size} x {size} f64 matrices), \
-             more than the {:.1} GB memory budget (half the machine's memory); use --solver pu or \
-             --solver fast, or fewer samples",
-            needed as f64 / 1e9,
-            budget as f64 / 1e9
-        )));
+        return Err(Error::OverBudget {
+            needed_bytes: needed.min(u128::from(u64::MAX)) as u64,
+            budget_bytes: budget,
+            budget_option: None,
+            message: Phrase::new(format!(
+                "dense RBF solve of {size} unknowns needs {:.1} GB (two {size} x {size} f64 matrices), \
+                 more than the {:.1} GB memory budget (half the machine's memory); set ",
+                needed as f64 / 1e9,
+                budget as f64 / 1e9
+            ))
+            .option(OptionName::FitSolver)
+            .text(" to pu or fast, or fit fewer samples"),
+        });
     }
     Ok(())
 }
@@ -473,11 +508,16 @@ fn solve_partition_of_unity(
         pu_model.memory_bytes() + rayon::current_num_threads() * size * (size + 1) * 8;
     let model = RbfModel::from_partition_of_unity(pu_model);
     if stats.foreign_weighted_samples > 0 {
-        return Err(Error::Numerical(format!(
-            "partition-of-unity fit: {} samples are weighted by patches not fitted to them (a bug in \
-             the partition; use --solver fast)",
-            stats.foreign_weighted_samples
-        )));
+        return Err(Error::Options {
+            kind: OptionsErrorKind::Numerical,
+            message: Phrase::new(format!(
+                "partition-of-unity fit: {} samples are weighted by patches not fitted to them (a bug \
+                 in the partition; set ",
+                stats.foreign_weighted_samples
+            ))
+            .option(OptionName::FitSolver)
+            .text(" to fast)"),
+        });
     }
     Ok(SubsetFit {
         model,

@@ -410,7 +410,11 @@ fn the_dense_solve_refuses_what_does_not_fit_in_memory() {
     let err = check_dense_memory(200_004).expect_err("640 GB");
     let text = err.to_string();
     assert!(
-        text.contains("640.0 GB") && text.contains("--solver pu"),
+        text.contains("640.0 GB") && text.contains("to pu or fast"),
         "{text}"
     );
+    assert!(matches!(
+        err,
+        crate::Error::OverBudget { budget_option: None, needed_bytes, .. } if needed_bytes == 2 * 200_004u64 * 200_004 * 8
+    ));
 }

@@ -290,12 +290,18 @@ impl SegmentOptions {
         if self.edgel_count == Some(0) {
             return bad("edgel_count", "must be >= 1");
         }
+        if !(self.min_edgel_relative_strength.is_finite()
+            && self.min_edgel_relative_strength >= 0.0)
+        {
+            return Err(Error::Options {
+                kind: crate::OptionsErrorKind::InvalidInput,
+                message: crate::Phrase::new("segment option ")
+                    .option(crate::OptionName::MinEdgelRelativeStrength)
+                    .text(": must be finite and >= 0"),
+            });
+        }
         for (name, x) in [
             ("min_edgel_gradient", self.min_edgel_gradient),
-            (
-                "min_edgel_relative_strength (--edgel-floor)",
-                self.min_edgel_relative_strength,
-            ),
             ("prior_inside", self.prior_inside),
             ("prior_outside", self.prior_outside),
             ("threshold", self.threshold),

@@ -422,7 +422,7 @@ fn bad_options_are_rejected_by_name() {
                 min_edgel_relative_strength: -0.1,
                 ..Default::default()
             },
-            "--edgel-floor",
+            "min_edgel_relative_strength",
         ),
         (
             SegmentOptions {

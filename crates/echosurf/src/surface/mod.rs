@@ -102,11 +102,15 @@ pub struct SurfaceDomain {
 }
 
 /// Options of the regularised marching tetrahedra.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SurfaceOptions {
-    /// Lattice spacing in mm.
+    /// Lattice spacing in mm (in `extract`'s options, the user tier's `resolution_mm`).
+    #[serde(skip)]
     pub resolution_mm: f64,
-    /// Region of trust radius (mm) around `SurfaceDomain::trust_points`.
+    /// Region of trust radius (mm) around `SurfaceDomain::trust_points` (in `extract`'s options,
+    /// `Tuning::trust_distance_mm`).
+    #[serde(skip)]
     pub trust_distance_mm: f64,
     /// How far (in cells, Chebyshev distance) a seed whose own cell is not crossed looks for the surface.
     pub seed_search_radius_cells: u32,

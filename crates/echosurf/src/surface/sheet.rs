@@ -18,7 +18,8 @@ use crate::mesh::Mesh;
 use crate::spatial::PointBuckets;
 
 /// How [`sheet_through_points`] smooths and closes.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SheetOptions {
     /// `h` of the Gaussian weights (mm): the sheet averages the points over about this distance.
     pub smoothing_mm: f64,

@@ -567,6 +567,7 @@ fn check_memory_budget(
     options: &VoxelOptions,
     geometry: &GridGeometry,
     element_type: ElementType,
+    progress: &dyn Progress,
 ) -> Result<()> {
     // Plus one frame's splatting buffers and what is resident already (the decoded sequence, the
     // process), or the decoded sequence where the resident size is not reported.
@@ -576,7 +577,7 @@ fn check_memory_budget(
     };
     let frame_bytes = paste::frame_working_bytes(sequence, options) + resident;
     let need = estimated_memory_bytes(geometry, element_type, options) + frame_bytes;
-    crate::budget::record_estimate(need.min(u64::MAX as u128) as u64);
+    progress.memory_estimate(need.min(u64::MAX as u128) as u64);
     let budget = options.memory_budget_bytes as u128;
     // Flat voxel indices are u32 in the splatting buffers.
     let too_many = geometry.voxel_count() >= u32::MAX as u128;
@@ -672,7 +673,7 @@ pub fn reconstruct_volume(
     }
     let element_type = sequence.pixels.element_type();
     let geometry = grid_geometry(sequence, poses, options)?;
-    check_memory_budget(sequence, poses, options, &geometry, element_type)?;
+    check_memory_budget(sequence, poses, options, &geometry, element_type, progress)?;
 
     let integer_values = element_type != ElementType::F32;
     let mut stats = ReconstructionStats::default();

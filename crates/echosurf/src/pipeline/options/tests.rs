@@ -1,4 +1,5 @@
 use super::*;
+use crate::rbf::SolverChoice;
 
 /// The first error of `config` after `change`.
 fn refused(change: impl FnOnce(&mut ExtractConfig)) -> OptionError {
@@ -62,7 +63,7 @@ fn every_knob_survives_a_round_trip_through_serde() {
     assert_eq!(partial.tuning.ridge.reach_mm, 1.0);
     assert_eq!(
         partial.tuning.ridge.smoothing_mm,
-        RidgeTuning::default().smoothing_mm
+        SheetOptions::default().smoothing_mm
     );
     assert_eq!(partial.tuning.cleanup, CleanupTuning::default());
     let unknown = serde_json::from_str::<ExtractConfig>(r#"{"tuning": {"ridge": {"colour": 1}}}"#)
@@ -135,9 +136,7 @@ fn each_range_check_names_its_field() {
         ("tuning.sampling.echo_margin_mm", |c| {
             c.tuning.sampling.echo_margin_mm = -1.0
         }),
-        ("tuning.fit.accuracy_grey", |c| {
-            c.tuning.fit.accuracy_grey = 0.0
-        }),
+        ("tuning.fit.accuracy_grey", |c| c.tuning.fit.accuracy = 0.0),
         ("tuning.fit.eval_accuracy", |c| {
             c.tuning.fit.eval_accuracy = 1.0
         }),
@@ -151,17 +150,17 @@ fn each_range_check_names_its_field() {
             c.tuning.ridge.smoothing_mm = 0.0
         }),
         ("tuning.ridge.reach_mm", |c| c.tuning.ridge.reach_mm = -1.0),
-        ("tuning.ridge.weak_reach_mm", |c| {
-            c.tuning.ridge.weak_reach_mm = f64::INFINITY
+        ("tuning.weak_echoes.reach_mm", |c| {
+            c.tuning.weak_echoes.reach_mm = f64::INFINITY
         }),
         ("tuning.ridge.bridge_mm", |c| {
             c.tuning.ridge.bridge_mm = -0.5
         }),
-        ("tuning.ridge.weak_level_fraction", |c| {
-            c.tuning.ridge.weak_level_fraction = 1.0
+        ("tuning.weak_echoes.level_fraction", |c| {
+            c.tuning.weak_echoes.level_fraction = 1.0
         }),
-        ("tuning.ridge.weak_level_fraction", |c| {
-            c.tuning.ridge.weak_level_fraction = -0.1
+        ("tuning.weak_echoes.level_fraction", |c| {
+            c.tuning.weak_echoes.level_fraction = -0.1
         }),
         ("tuning.cleanup.max_echo_distance_mm", |c| {
             c.tuning.cleanup.max_echo_distance_mm = -1.0
@@ -187,7 +186,7 @@ fn each_range_check_names_its_field() {
     // Zero is a valid "off" for the distances and thinning margins.
     let mut config = ExtractConfig::default();
     config.tuning.ridge.bridge_mm = 0.0;
-    config.tuning.ridge.weak_level_fraction = 0.0;
+    config.tuning.weak_echoes.level_fraction = 0.0;
     config.tuning.sampling.echo_margin_mm = 0.0;
     config.tuning.cleanup.max_echo_distance_mm = 0.0;
     config.tuning.voxel.smoothing_sigma_mm = 0.0;
@@ -196,4 +195,42 @@ fn each_range_check_names_its_field() {
         config.to_extract_options(InitialBand::Auto).echo_margin_mm,
         None
     );
+}
+
+#[test]
+fn the_tuning_sections_are_the_stage_options_and_the_user_tier_knobs_are_not_in_them() {
+    // `[tuning.fit]` is `rbf::FitOptions`: a value set there reaches the fit unchanged.
+    let parsed: ExtractConfig = serde_json::from_str(
+        r#"{"tuning": {"fit": {"accuracy_grey": 0.5, "solver": "pu"},
+            "weak_echoes": {"reach_mm": 2.0}, "voxel": {"spacing_mm": "auto"}}}"#,
+    )
+    .unwrap();
+    let options = parsed.to_extract_options(InitialBand::Auto);
+    assert_eq!(options.fit.accuracy, 0.5);
+    assert_eq!(options.fit.solver, SolverChoice::PartitionOfUnity);
+    assert_eq!(options.weak_echoes.reach_mm, 2.0);
+    // The smoothing, seed and resolution are the user tier's: their stage fields are not keys.
+    for (section, key) in [
+        ("fit", "smoothing"),
+        ("fit", "seed"),
+        ("surface", "resolution_mm"),
+        ("surface", "trust_distance_mm"),
+    ] {
+        let text = format!(r#"{{"tuning": {{"{section}": {{"{key}": 1.0}}}}}}"#);
+        let err = serde_json::from_str::<ExtractConfig>(&text)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains(&format!("unknown field `{key}`")), "{err}");
+    }
+    let mut config = ExtractConfig::default();
+    config.user.smoothing_mm = 3.0;
+    config.user.seed = 9;
+    config.user.resolution_mm = 0.75;
+    let options = config.to_extract_options(InitialBand::Auto);
+    assert_eq!(
+        (options.fit.smoothing, options.fit.seed),
+        (3.0, 9),
+        "the user tier sets the fit"
+    );
+    assert_eq!(options.surface.resolution_mm, 0.75);
 }
