@@ -119,12 +119,7 @@ fn user_option_names() -> Vec<String> {
 }
 
 /// One surface for Python: (level, vertices (N, 3) float64, faces (M, 3) int32, normals (N, 3) or (0, 3)).
-type SurfaceTuple<'py> = (
-    f64,
-    Bound<'py, PyAny>,
-    Bound<'py, PyAny>,
-    Bound<'py, PyAny>,
-);
+type SurfaceTuple<'py> = (f64, Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyAny>);
 
 /// `rows` of three as an (n, 3) numpy array.
 fn rows3<'py, T: numpy::Element>(
@@ -201,8 +196,9 @@ fn run_extract(
     let sequence = io::read_sequence(sequence_path).map_err(|e| e.to_string())?;
     let calibration = io::read_calibration(calibration_path).map_err(|e| e.to_string())?;
     let init = match init {
-        Some(path) => InitialBand::load(path, sequence.width, sequence.height)
-            .map_err(|e| e.to_string())?,
+        Some(path) => {
+            InitialBand::load(path, sequence.width, sequence.height).map_err(|e| e.to_string())?
+        }
         None => InitialBand::Auto,
     };
     options::check_clip(&calibration, &sequence, calibration_path, sequence_path)?;
@@ -273,10 +269,7 @@ impl PyModel {
         let (values, gradients) = py.detach(|| self.model.values_and_gradients(&points));
         let n = gradients.len();
         let gradients: Vec<f64> = gradients.iter().flat_map(|g| g.to_array()).collect();
-        Ok((
-            values.into_pyarray(py).into_any(),
-            rows3(py, gradients, n)?,
-        ))
+        Ok((values.into_pyarray(py).into_any(), rows3(py, gradients, n)?))
     }
 
     /// Writes the model as `.esrbf` (what `echosurf fit --out` writes), atomically.
@@ -287,9 +280,7 @@ impl PyModel {
     /// Reads a `.esrbf` model (from `echosurf fit` or [`PyModel::save`]).
     #[staticmethod]
     fn load(py: Python<'_>, path: PathBuf) -> PyResult<PyModel> {
-        let model = py
-            .detach(|| RbfModel::load(&path))
-            .map_err(library_error)?;
+        let model = py.detach(|| RbfModel::load(&path)).map_err(library_error)?;
         Ok(PyModel {
             model,
             report_json: String::new(),

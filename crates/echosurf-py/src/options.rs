@@ -110,13 +110,16 @@ pub fn build_config(
         serde_json::from_value::<UserOptions>(user.clone())
             .map_err(|e| PyValueError::new_err(format!("{key}: {e}")))?;
     }
-    options.user = serde_json::from_value(user)
-        .map_err(|e| PyValueError::new_err(format!("options: {e}")))?;
+    options.user =
+        serde_json::from_value(user).map_err(|e| PyValueError::new_err(format!("options: {e}")))?;
     if let Some(mb) = memory_budget_mb {
         options.tuning.memory_budget_mb = Some(mb);
     }
     options.validate().map_err(|e| {
-        let keyword = e.field.strip_prefix("user.").filter(|k| overrides.contains_key(*k));
+        let keyword = e
+            .field
+            .strip_prefix("user.")
+            .filter(|k| overrides.contains_key(*k));
         match (keyword, config) {
             (Some(keyword), _) => PyValueError::new_err(format!("{keyword} {}", e.problem)),
             _ if e.field == "tuning.memory_budget_mb" && memory_budget_mb.is_some() => {

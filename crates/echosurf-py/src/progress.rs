@@ -1,15 +1,19 @@
-//! The library's progress hook for Python: runs the work without the GIL, calls the user's
-//! `progress(stage, fraction)` (taking the GIL only for the call), watches for Ctrl-C, and stops the
-//! work when the callback raises or a signal arrives.
+//! The library's progress hook for Python: runs the work on a worker thread with the GIL released,
+//! calls the user's `progress(stage, fraction)` (taking the GIL only for the call), and stops the work
+//! when the callback raises or Ctrl-C arrives.
 //!
-//! The library has no cancellation hook, so stopping unwinds out of it from inside the progress call
-//! with [`std::panic::resume_unwind`] (which runs no panic hook and prints nothing) and catches that
-//! unwind at [`PyProgress::run`]; rayon carries it from worker threads to the caller. The library
-//! writes no file during `extract` or `fit` here, so nothing is left half-written.
+//! The calling thread waits for the worker and looks for signals (which Python delivers to the main
+//! thread only) every [`SIGNAL_CHECK_INTERVAL`]. The library has no cancellation hook, so stopping
+//! unwinds out of it from its next progress call with [`std::panic::resume_unwind`] (which runs no
+//! panic hook and prints nothing); rayon carries the unwind from its threads to the worker, where
+//! [`PyProgress::run`] catches it. The library writes no file during `extract` or `fit` here, so
+//! nothing is left half-written.
 
 use std::panic::AssertUnwindSafe;
 use std::sync::Mutex;
-use std::time::{Duration, Instant};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{RecvTimeoutError, channel};
+use std::time::Duration;
 
 use echosurf::progress::Progress;
 use pyo3::exceptions::PyKeyboardInterrupt;
@@ -17,8 +21,11 @@ use pyo3::prelude::*;
 
 use crate::EchosurfError;
 
-/// How often Ctrl-C is looked for while no callback fraction is due.
-const SIGNAL_CHECK_INTERVAL: Duration = Duration::from_millis(100);
+/// How often the waiting thread looks for Ctrl-C.
+const SIGNAL_CHECK_INTERVAL: Duration = Duration::from_millis(50);
+
+/// Stack of the worker thread: that of a main thread, as the CLI runs the same work on its main thread.
+const WORKER_STACK_BYTES: usize = 8 << 20;
 
 /// The unwind payload that stops the library's work.
 struct Stop;
@@ -28,9 +35,8 @@ struct Stop;
 struct Stage {
     name: String,
     total: u64,
-    /// Last fraction handed to the callback, in hundredths (-1: none yet).
+    /// Last fraction handed to the callback, in hundredths.
     last_percent: i64,
-    last_signal_check: Instant,
 }
 
 /// Forwards the library's progress to an optional Python callable.
@@ -38,6 +44,8 @@ struct Stage {
 pub struct PyProgress {
     callback: Option<Py<PyAny>>,
     stage: Mutex<Stage>,
+    /// Set when the work must stop; the next progress call unwinds.
+    stopping: AtomicBool,
     /// The exception that stopped the work (raised by the callback, or Ctrl-C).
     error: Mutex<Option<PyErr>>,
 }
@@ -50,22 +58,54 @@ impl PyProgress {
                 name: String::new(),
                 total: 0,
                 last_percent: -1,
-                last_signal_check: Instant::now(),
             }),
+            stopping: AtomicBool::new(false),
             error: Mutex::new(None),
         }
     }
 
-    /// Runs `work` with the GIL released. A library error becomes [`EchosurfError`] with its
-    /// message; an exception from the callback (or Ctrl-C) stops the work and is raised as is.
+    /// Runs `work` on a worker thread with the GIL released. A library error becomes
+    /// [`EchosurfError`] with its message; an exception from the callback, or Ctrl-C, stops the work
+    /// and is raised as is.
     pub fn run<T: Send>(
         &self,
         py: Python<'_>,
         work: impl FnOnce() -> Result<T, String> + Send,
     ) -> PyResult<T> {
-        let result = py.detach(|| std::panic::catch_unwind(AssertUnwindSafe(work)));
+        let (sender, receiver) = channel();
+        // Only this thread receives; the mutex makes the receiver shareable with `detach`.
+        let receiver = Mutex::new(receiver);
+        let outcome = std::thread::scope(|scope| {
+            std::thread::Builder::new()
+                .name("echosurf".into())
+                .stack_size(WORKER_STACK_BYTES)
+                .spawn_scoped(scope, move || {
+                    // The receiver outlives the worker: sending cannot fail.
+                    let _ = sender.send(std::panic::catch_unwind(AssertUnwindSafe(work)));
+                })
+                .map_err(|e| EchosurfError::new_err(format!("starting a worker thread: {e}")))?;
+            loop {
+                let received = py.detach(|| match receiver.lock() {
+                    Ok(r) => r.recv_timeout(SIGNAL_CHECK_INTERVAL),
+                    Err(_) => Err(RecvTimeoutError::Disconnected),
+                });
+                match received {
+                    Ok(result) => return Ok(result),
+                    Err(RecvTimeoutError::Timeout) => {
+                        if let Err(signal) = py.check_signals() {
+                            self.stop(signal);
+                        }
+                    }
+                    Err(RecvTimeoutError::Disconnected) => {
+                        return Err(EchosurfError::new_err(
+                            "the worker thread ended without a result",
+                        ));
+                    }
+                }
+            }
+        })?;
         let stopped = self.take_error();
-        match result {
+        match outcome {
             Ok(Ok(value)) => match stopped {
                 Some(error) => Err(error),
                 None => Ok(value),
@@ -78,40 +118,36 @@ impl PyProgress {
         }
     }
 
+    /// Keeps the first reason to stop and tells the work to stop.
+    fn stop(&self, error: PyErr) {
+        if let Ok(mut slot) = self.error.lock() {
+            slot.get_or_insert(error);
+        }
+        self.stopping.store(true, Ordering::SeqCst);
+    }
+
     fn take_error(&self) -> Option<PyErr> {
         self.error.lock().ok().and_then(|mut slot| slot.take())
     }
 
-    /// Hands `fraction` of `stage` to the callback when `due`, checks for Ctrl-C when due or every
-    /// [`SIGNAL_CHECK_INTERVAL`]; unwinds out of the library when either raised.
+    /// Unwinds out of the library when the work must stop; else hands the fraction `update` gives
+    /// (if any) to the callback.
     fn report(&self, update: impl FnOnce(&mut Stage) -> Option<(String, f64)>) {
-        let (call, check_signals) = {
-            let Ok(mut stage) = self.stage.lock() else {
-                return;
-            };
-            let call = update(&mut stage).filter(|_| self.callback.is_some());
-            let check = call.is_some() || stage.last_signal_check.elapsed() >= SIGNAL_CHECK_INTERVAL;
-            if check {
-                stage.last_signal_check = Instant::now();
-            }
-            (call, check)
-        };
-        if !check_signals {
-            return;
+        if self.stopping.load(Ordering::SeqCst) {
+            std::panic::resume_unwind(Box::new(Stop));
         }
-        let failure = Python::attach(|py| {
-            // Signals are delivered to the main thread only; elsewhere this returns Ok.
-            py.check_signals()?;
-            if let (Some((name, fraction)), Some(callback)) = (call, &self.callback) {
-                callback.call1(py, (name, fraction))?;
-            }
-            Ok::<(), PyErr>(())
-        })
-        .err();
-        if let Some(error) = failure {
-            if let Ok(mut slot) = self.error.lock() {
-                slot.get_or_insert(error);
-            }
+        let Some(callback) = &self.callback else {
+            return;
+        };
+        let call = match self.stage.lock() {
+            Ok(mut stage) => update(&mut stage),
+            Err(_) => None,
+        };
+        let Some((name, fraction)) = call else {
+            return;
+        };
+        if let Err(error) = Python::attach(|py| callback.call1(py, (name, fraction))) {
+            self.stop(error);
             std::panic::resume_unwind(Box::new(Stop));
         }
     }

@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import json
 import re
+import signal
+import subprocess
+import sys
+import textwrap
 import threading
 import time
 import zlib
@@ -354,3 +358,33 @@ def test_the_gil_is_released_while_fitting():
     inside = [t for t in ticks if span["start"] + 0.1 * duration < t < span["end"]]
     # Holding the GIL for the whole fit would leave this thread no tick inside it.
     assert duration > 0.05 and len(inside) >= 10, (duration, len(inside))
+
+
+def test_ctrl_c_stops_a_run_with_keyboard_interrupt(duck):
+    # A child process extracts the duck (tens of seconds) and gets SIGINT once segmentation has
+    # started: it must end in KeyboardInterrupt long before the run could have finished.
+    script = textwrap.dedent(
+        """
+        import sys, echosurf
+        def progress(stage, fraction):
+            print(stage, flush=True)
+        try:
+            echosurf.extract(sys.argv[1], sys.argv[2], progress=progress)
+        except KeyboardInterrupt:
+            print("interrupted", flush=True)
+            sys.exit(3)
+        print("finished", flush=True)
+        """
+    )
+    child = subprocess.Popen(
+        [sys.executable, "-c", script, str(duck[0]), str(duck[1])],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    assert child.stdout is not None
+    for line in child.stdout:
+        if line.strip() == "segment":
+            break
+    child.send_signal(signal.SIGINT)
+    rest, errors = child.communicate(timeout=120)
+    assert child.returncode == 3, (child.returncode, rest[-500:], errors[-2000:])
+    assert "interrupted" in rest and "finished" not in rest
