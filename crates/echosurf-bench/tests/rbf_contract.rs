@@ -141,7 +141,7 @@ fn an_accuracy_out_of_reach_is_refused_with_the_achieved_figure() {
     assert!(
         text.contains("above the requested accuracy 0.0000000000001")
             && text.contains("FitOptions::solver to fast")
-            && err.options().contains(&crate::OptionName::FitSolver),
+            && err.options().contains(&echosurf::OptionName::FitSolver),
         "{text}"
     );
     let err = fit(
