@@ -201,7 +201,8 @@ fn run_extract(
         }
         None => InitialBand::Auto,
     };
-    options::check_clip(&calibration, &sequence, calibration_path, sequence_path)?;
+    io::check_clip_fits(&calibration, &sequence, calibration_path, sequence_path)
+        .map_err(|e| e.to_string())?;
     let options = config.to_extract_options(init);
     let voxel = matches!(options.method, Method::Voxel(_));
     pipeline::extract(&sequence, Some(&calibration), &options, progress).map_err(|e| {

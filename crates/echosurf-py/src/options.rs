@@ -4,7 +4,6 @@
 
 use std::path::Path;
 
-use echosurf::io::{Calibration, TrackedSequence};
 use echosurf::pipeline::{ExtractConfig, Tuning, UserOptions};
 use pyo3::PyErr;
 use pyo3::exceptions::{PyTypeError, PyValueError};
@@ -141,34 +140,4 @@ pub fn memory_budget_bytes(mb: Option<f64>) -> Result<u64, PyErr> {
             "memory_budget_mb must be a positive number of MB, got {mb}"
         ))),
     }
-}
-
-/// Refuses a clip rectangle outside the frames, as `echosurf extract` does: every pixel would be
-/// clipped, and the run would end in no samples after all its work.
-pub fn check_clip(
-    calibration: &Calibration,
-    sequence: &TrackedSequence,
-    calibration_path: &Path,
-    sequence_path: &Path,
-) -> Result<(), String> {
-    let Some(clip) = calibration.clip else {
-        return Ok(());
-    };
-    let [x, y] = clip.origin_px;
-    let [w, h] = clip.size_px;
-    // A zero size means no clipping (as PLUS reads it).
-    if w == 0 || h == 0 || sequence.width == 0 || sequence.height == 0 {
-        return Ok(());
-    }
-    if x >= sequence.width || y >= sequence.height {
-        return Err(format!(
-            "{}: the clip rectangle (ClipRectangleOrigin {x} {y}, ClipRectangleSize {w} {h}) lies \
-             outside the {} x {} pixel frames of {}: no pixel would be used",
-            calibration_path.display(),
-            sequence.width,
-            sequence.height,
-            sequence_path.display()
-        ));
-    }
-    Ok(())
 }

@@ -27,34 +27,19 @@ pub fn read_calibration_for(
     Ok(calibration)
 }
 
-/// Refuses a clip rectangle (`ClipRectangleOrigin`/`Size`) outside the frames: every pixel would be
-/// clipped, and the run would end in an empty volume or no samples after all its work.
+/// Refuses a clip rectangle outside the frames (the library's check).
 pub fn check_clip(
     calibration: &Calibration,
     sequence: &TrackedSequence,
     config: &Path,
     sequence_path: &Path,
 ) -> anyhow::Result<()> {
-    let Some(clip) = calibration.clip else {
-        return Ok(());
-    };
-    let [x, y] = clip.origin_px;
-    let [w, h] = clip.size_px;
-    // A zero size means no clipping (as PLUS reads it).
-    if w == 0 || h == 0 || sequence.width == 0 || sequence.height == 0 {
-        return Ok(());
-    }
-    if x >= sequence.width || y >= sequence.height {
-        anyhow::bail!(
-            "{}: the clip rectangle (ClipRectangleOrigin {x} {y}, ClipRectangleSize {w} {h}) lies \
-             outside the {} x {} pixel frames of {}: no pixel would be used",
-            config.display(),
-            sequence.width,
-            sequence.height,
-            sequence_path.display()
-        );
-    }
-    Ok(())
+    Ok(io::check_clip_fits(
+        calibration,
+        sequence,
+        config,
+        sequence_path,
+    )?)
 }
 
 /// How often timestamps go backwards and where first, if they do.

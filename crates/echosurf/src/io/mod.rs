@@ -24,7 +24,7 @@ pub use mesh_io::{
     Space, read_mesh, read_mesh_and_space, read_vertex_colours, write_mesh, write_mesh_in,
     write_ply_with_vertex_values,
 };
-pub use plus_config::{read_calibration, write_calibration};
+pub use plus_config::{check_clip_fits, read_calibration, write_calibration};
 pub use ply::{PointCloud, read_point_cloud, write_point_cloud};
 pub use pose::{
     FramePose, MIN_SWEEP_SPAN_MM, PathStats, PoseResolution, ReferenceChoice, Sweep,

@@ -17,6 +17,36 @@ const MAX_CONFIG_BYTES: u64 = 64 << 20;
 /// Reads the calibration of a PLUS device set: every `CoordinateDefinitions/Transform`, the Image->Probe
 /// matrix (or the inverse of a Probe->Image one), and the `VolumeReconstruction` attributes with the clip
 /// rectangle.
+/// Refuses a clip rectangle (`ClipRectangleOrigin`/`Size`) outside the frames of `sequence`: every
+/// pixel would be clipped, and the run would end in an empty volume or no samples after all its work.
+pub fn check_clip_fits(
+    calibration: &Calibration,
+    sequence: &super::TrackedSequence,
+    calibration_path: &Path,
+    sequence_path: &Path,
+) -> Result<()> {
+    let Some(clip) = calibration.clip else {
+        return Ok(());
+    };
+    let [x, y] = clip.origin_px;
+    let [w, h] = clip.size_px;
+    // A zero size means no clipping (as PLUS reads it).
+    if w == 0 || h == 0 || sequence.width == 0 || sequence.height == 0 {
+        return Ok(());
+    }
+    if x >= sequence.width || y >= sequence.height {
+        return Err(Error::InvalidInput(format!(
+            "{}: the clip rectangle (ClipRectangleOrigin {x} {y}, ClipRectangleSize {w} {h}) lies \
+             outside the {} x {} pixel frames of {}: no pixel would be used",
+            calibration_path.display(),
+            sequence.width,
+            sequence.height,
+            sequence_path.display()
+        )));
+    }
+    Ok(())
+}
+
 pub fn read_calibration(path: &Path) -> Result<Calibration> {
     let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
