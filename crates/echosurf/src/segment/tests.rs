@@ -1,6 +1,8 @@
 use super::synthetic::{SyntheticSweep, synthetic_sweep};
 use super::*;
-use crate::io::{ClipRect, FramePose};
+use glam::DMat4;
+
+use crate::io::{ClipRect, FramePose, PixelData, TrackedFrame};
 use crate::progress::NoProgress;
 
 /// Share of the pixels within `radius_mm` of the true boundary that are kept, over `frames`, and the kept
