@@ -1,7 +1,8 @@
 //! Removing what no echo backs from a mesh: small or unechoed pieces, far triangles, rim rings, and
 //! closing small holes.
 
-use super::*;
+use super::{DVec3, Mesh, edge_neighbours};
+use rayon::prelude::*;
 
 impl Mesh {
     /// Removes the edge-connected components whose area is below `min_area_mm2` (isolated speckle blobs

@@ -1,7 +1,7 @@
 //! Joining a mesh's pieces: across pinched vertices, across narrow gaps between rims, and splitting
 //! the pinches that cannot be joined.
 
-use super::*;
+use super::{DVec3, Mesh, find_root};
 
 /// Distance from `p` to the segment from `a` to `b`.
 fn distance_to_segment(p: DVec3, a: DVec3, b: DVec3) -> f64 {

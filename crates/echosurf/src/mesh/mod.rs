@@ -1,7 +1,6 @@
 //! The triangle mesh shared by the surfacer, the mesh readers and writers, the metrics and the renderer.
 
 use glam::DVec3;
-use rayon::prelude::*;
 
 mod cleanup;
 mod joins;

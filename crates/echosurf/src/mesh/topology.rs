@@ -1,7 +1,7 @@
 //! What a mesh's connectivity is: its topology counts (manifold, closed, oriented) and its
 //! edge-connected pieces.
 
-use super::*;
+use super::{Mesh, find_root};
 
 /// Topological facts about a mesh: what `compare` reports and what the surfacer guarantees.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]

@@ -1,7 +1,10 @@
 //! What `extract` runs with ([`ExtractOptions`], built from the two tiers in `options.rs`), the
 //! sheet choice, and the defaults the stages share.
 
-use super::*;
+use super::{
+    ExtractConfig, FitOptions, InitialBand, IntensityLevels, ReferenceChoice, SegmentOptions,
+    SheetOptions, SurfaceOptions, VoxelRouteOptions,
+};
 
 /// Which route turns the frames into a surface.
 #[derive(Debug, Clone, PartialEq, Default)]

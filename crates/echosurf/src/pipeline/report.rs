@@ -1,6 +1,9 @@
 //! What `extract` returns: the surfaces and the report of every stage.
 
-use super::*;
+use super::{
+    DVec3, FitReport, IntensityLevels, Mesh, RbfModel, ResolvedParameters, SampleSet, Sheet,
+    StageUsage, SurfaceStats, VoxelRouteReport,
+};
 
 /// The sheet drawn for one iso-level, and why.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]

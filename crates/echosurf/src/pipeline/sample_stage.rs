@@ -1,7 +1,13 @@
 //! From a segmented sequence to the samples of the fit: placing frames, collecting and thinning
 //! the kept pixels, and checking the fit against the data.
 
-use super::*;
+use super::{
+    BandMasks, Calibration, ECHO_BUDGET_SHARE, ECHO_LEVEL_FRACTION, Error, ExtractOptions,
+    IntensityLevels, MIN_SWEEP_SPAN_MM, PoseResolution, Progress, Result, SampleSet, StageCounts,
+    StageMeter, TrackedSequence, collect_samples_binned_with_cells, estimate_echo_levels,
+    estimate_levels, near_echo_flags, priority_decimate, random_decimate, resolve_poses,
+    segment_sequence, sweep_span_mm,
+};
 
 /// The samples of a sequence and what it took to get them (shared by `extract` and `sample`).
 #[derive(Debug)]

@@ -1,7 +1,13 @@
 //! From a fitted model to the output surfaces: the seeds and region of trust, the echo-ridge sheet,
 //! and removing and joining pieces.
 
-use super::*;
+use super::{
+    AUTO_RIDGE_MIN_REACHED_SHARE, Calibration, DVec3, ECHO_SUPPORT_RADIUS_MM, EchoReach, Error,
+    ExtractOptions, FramePlane, IntensityLevels, Mesh, PoseResolution, PreparedSamples, RbfModel,
+    Result, RidgeOptions, SampleSet, Sheet, SheetUsed, SurfaceDomain, SurfaceOptions,
+    TrackedSequence, WeakRidge, clip_corners_px, extend_ridge_sheet, frame_corners,
+    proximal_sheet_on_ridge, sheet_through_points,
+};
 
 /// The beam direction of the frame nearest a point (among frames whose image the point projects into).
 pub(super) struct FrameBeams {
