@@ -14,8 +14,8 @@ use echosurf::pipeline::ExtractOptions;
 use echosurf::progress::NoProgress;
 use echosurf_live::codec::{self, Image, Limits, encode_message};
 use echosurf_live::session::{
-    IncrementalBands, LiveSession, SessionOptions, surface_of, update_extract_options,
-    update_surface,
+    IncrementalBands, LiveSession, SessionOptions, update_extract_options, update_surface,
+    update_surface_unless_stopped,
 };
 use echosurf_sim::{SimulationOptions, simulate};
 
@@ -52,6 +52,7 @@ fn main() {
     });
     let update_options = update_extract_options(samples, resolution_mm);
     let mut bands = IncrementalBands::default();
+    let mut bands_before_last = IncrementalBands::default();
     let mut receive_s = 0.0f64;
     let mut worst_update_s = 0.0f64;
     println!(
@@ -77,6 +78,7 @@ fn main() {
         receive_s = receive_s.max(start.elapsed().as_secs_f64());
         assert!(warnings.is_empty(), "{warnings:?}");
         if session.update_due() {
+            bands_before_last = bands.clone();
             let snapshot = session.snapshot_for_update();
             let start = Instant::now();
             let mesh = update_surface(&mut bands, &snapshot, calibration, &update_options)
@@ -90,10 +92,57 @@ fn main() {
             );
         }
     }
+    let final_extract = || {
+        echosurf::pipeline::extract(
+            session.sequence(),
+            Some(calibration),
+            &ExtractOptions::default(),
+            &NoProgress,
+        )
+        .expect("final")
+    };
     let start = Instant::now();
-    let final_mesh =
-        surface_of(session.sequence(), calibration, &ExtractOptions::default()).expect("final");
+    let final_output = final_extract();
     let final_s = start.elapsed().as_secs_f64();
+    // The client's case: the last update (its bands as before it) is still running when the sweep
+    // ends. Left to finish, it shares the cores with the final mesh; stopped, it is abandoned.
+    let final_beside_update = |abandon: bool| {
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        let mut last_bands = bands_before_last.clone();
+        std::thread::scope(|scope| {
+            scope.spawn(|| {
+                update_surface_unless_stopped(
+                    &mut last_bands,
+                    session.sequence(),
+                    calibration,
+                    &update_options,
+                    &stop,
+                )
+            });
+            // Let the update get going, as it would be when the last frame arrives.
+            std::thread::sleep(std::time::Duration::from_millis(100));
+            let start = Instant::now();
+            if abandon {
+                stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            }
+            let _ = final_extract();
+            start.elapsed().as_secs_f64()
+        })
+    };
+    let beside_finished_s = final_beside_update(false);
+    let beside_abandoned_s = final_beside_update(true);
+    let stages: Vec<String> = final_output
+        .report
+        .stages
+        .iter()
+        .map(|s| format!("{} {:.3} s", s.stage, s.seconds))
+        .collect();
+    let final_mesh = final_output
+        .surfaces
+        .into_iter()
+        .next()
+        .map(|s| s.mesh)
+        .unwrap_or_default();
     println!("  slowest frame received and recorded: {:.4} s", receive_s);
     println!(
         "  slowest update: {worst_update_s:.3} s (target 1 s: {})",
@@ -107,5 +156,10 @@ fn main() {
         "  last frame to final mesh ({} triangles, extract's defaults): {final_s:.3} s (target 2 s: {})",
         final_mesh.triangles.len(),
         if final_s <= 2.0 { "met" } else { "NOT met" }
+    );
+    println!("  final mesh stages: {}", stages.join(", "));
+    println!(
+        "  final mesh with the last update still running: {beside_finished_s:.3} s if it finishes, \
+         {beside_abandoned_s:.3} s if it is abandoned (the client's way)"
     );
 }
