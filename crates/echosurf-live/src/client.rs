@@ -17,7 +17,9 @@ use echosurf::mesh::Mesh;
 use echosurf::pipeline::ExtractOptions;
 
 use crate::codec::{self, CodecError, Limits, encode_message, encode_polydata};
-use crate::session::{IncrementalBands, LiveSession, SessionOptions, surface_of, update_surface};
+use crate::session::{
+    IncrementalBands, LiveSession, SessionOptions, surface_of, update_surface_unless_stopped,
+};
 
 /// Device name of the surface sent back.
 pub const SURFACE_DEVICE: &str = "EchosurfSurface";
@@ -155,15 +157,28 @@ struct Worker {
     jobs: SyncSender<(TrackedSequence, Instant)>,
     results: Receiver<(usize, echosurf::Result<Mesh>, f64)>,
     busy: bool,
+    /// Set when the session ends: an update still running is abandoned so the final mesh has the
+    /// cores to itself.
+    stop: Arc<AtomicBool>,
 }
 
 fn start_worker(calibration: Calibration, options: ExtractOptions) -> Worker {
     let (jobs, job_rx) = mpsc::sync_channel::<(TrackedSequence, Instant)>(1);
     let (result_tx, results) = mpsc::channel();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stop_seen = Arc::clone(&stop);
     std::thread::spawn(move || {
         let mut bands = IncrementalBands::default();
         for (sequence, started) in job_rx {
-            let mesh = update_surface(&mut bands, &sequence, &calibration, &options);
+            let Some(mesh) = update_surface_unless_stopped(
+                &mut bands,
+                &sequence,
+                &calibration,
+                &options,
+                &stop_seen,
+            ) else {
+                return;
+            };
             let seconds = started.elapsed().as_secs_f64();
             if result_tx
                 .send((sequence.frames.len(), mesh, seconds))
@@ -177,6 +192,7 @@ fn start_worker(calibration: Calibration, options: ExtractOptions) -> Worker {
         jobs,
         results,
         busy: false,
+        stop,
     }
 }
 
@@ -438,6 +454,8 @@ pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
             }
         }
     }
+    // No more updates: one still running would share the 2 cores with the final mesh.
+    worker.stop.store(true, Ordering::Relaxed);
     for w in session.finish() {
         warn(w, &mut warnings);
     }

@@ -6,6 +6,7 @@
 //! be found, so nothing received is lost.
 
 use std::collections::{BTreeMap, VecDeque};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use glam::{DMat4, DQuat, DVec3};
 
@@ -14,7 +15,7 @@ use echosurf::io::{
 };
 use echosurf::mesh::Mesh;
 use echosurf::pipeline::{self, ExtractOptions};
-use echosurf::progress::NoProgress;
+use echosurf::progress::{NoProgress, Progress};
 use echosurf::segment::{BandMasks, segment_sequence};
 
 use crate::codec::{Decoded, Image, Message, SCALAR_UINT8, STATUS_OK};
@@ -355,7 +356,7 @@ fn first_mesh(output: pipeline::ExtractOutput) -> Mesh {
 /// the last one: each batch of new frames is segmented as a sequence of its own (its band starts
 /// afresh, as at a sweep start) and its masks are appended. Updates only; the final mesh segments the
 /// whole recording as `extract` does.
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone)]
 pub struct IncrementalBands {
     bands: Option<BandMasks>,
     /// Set when a batch came out a bone sweep (its bands are fitted differently): from then on every
@@ -448,12 +449,77 @@ pub fn update_surface(
     calibration: &Calibration,
     options: &ExtractOptions,
 ) -> echosurf::Result<Mesh> {
-    let Some(masks) = bands.extend(sequence, calibration, options) else {
-        return surface_of(sequence, calibration, options);
+    update_surface_with(bands, sequence, calibration, options, &NoProgress)
+}
+
+fn update_surface_with(
+    bands: &mut IncrementalBands,
+    sequence: &TrackedSequence,
+    calibration: &Calibration,
+    options: &ExtractOptions,
+    progress: &dyn Progress,
+) -> echosurf::Result<Mesh> {
+    progress.start("update: segment the new frames", 0);
+    let masks = bands.extend(sequence, calibration, options);
+    progress.finish();
+    let Some(masks) = masks else {
+        let output = pipeline::extract(sequence, Some(calibration), options, progress)?;
+        return Ok(first_mesh(output));
     };
     let output =
-        pipeline::extract_with_masks(sequence, Some(calibration), options, masks, &NoProgress)?;
+        pipeline::extract_with_masks(sequence, Some(calibration), options, masks, progress)?;
     Ok(first_mesh(output))
+}
+
+/// The unwind payload that abandons an update (never a panic: no hook runs, nothing is printed).
+struct UpdateAbandoned;
+
+/// Abandons the update it watches at the next stage start or progress report once `stop` is set.
+struct StopAtReport<'a>(&'a AtomicBool);
+
+impl StopAtReport<'_> {
+    fn check(&self) {
+        if self.0.load(Ordering::Relaxed) {
+            std::panic::resume_unwind(Box::new(UpdateAbandoned));
+        }
+    }
+}
+
+impl Progress for StopAtReport<'_> {
+    fn start(&self, _stage: &str, _total: u64) {
+        self.check();
+    }
+    fn advance(&self, _done: u64) {
+        self.check();
+    }
+    fn finish(&self) {
+        self.check();
+    }
+    fn stage_started(&self, _stage: &str) -> bool {
+        self.check();
+        false
+    }
+}
+
+/// [`update_surface`], abandoned (`None`) at its next stage start or progress report once `stop` is
+/// set: when the sweep ends, an update still running would take a core from the final mesh (2 cores;
+/// docs/decisions/0030-live-openigtlink.md). `bands` stays valid either way (a batch's masks are
+/// appended whole or not at all).
+pub fn update_surface_unless_stopped(
+    bands: &mut IncrementalBands,
+    sequence: &TrackedSequence,
+    calibration: &Calibration,
+    options: &ExtractOptions,
+    stop: &AtomicBool,
+) -> Option<echosurf::Result<Mesh>> {
+    let run = std::panic::AssertUnwindSafe(|| {
+        update_surface_with(bands, sequence, calibration, options, &StopAtReport(stop))
+    });
+    match std::panic::catch_unwind(run) {
+        Ok(result) => Some(result),
+        Err(payload) if payload.is::<UpdateAbandoned>() => None,
+        Err(payload) => std::panic::resume_unwind(payload),
+    }
 }
 
 /// The centre of a frame in the world (for tests and reports).
@@ -722,5 +788,37 @@ mod tests {
         assert_eq!(first.masks[0], masks.masks[0]);
         let mesh = update_surface(&mut bands, sequence, calibration, &options).unwrap();
         assert!(!mesh.triangles.is_empty());
+    }
+
+    /// An update not stopped is [`update_surface`]'s, byte for byte; one stopped is abandoned without a
+    /// mesh, leaves the bands as they were, and the next update is again the plain one.
+    #[test]
+    fn a_stopped_update_is_abandoned_and_leaves_the_bands_usable() {
+        let sim = small_sphere();
+        let (sequence, calibration) = (&sim.sequence, &sim.calibration_written);
+        let options = update_extract_options(4_000, 1.0);
+        let plain = update_surface(
+            &mut IncrementalBands::default(),
+            sequence,
+            calibration,
+            &options,
+        )
+        .unwrap();
+        let running = AtomicBool::new(false);
+        let mut bands = IncrementalBands::default();
+        let watched =
+            update_surface_unless_stopped(&mut bands, sequence, calibration, &options, &running)
+                .expect("not stopped")
+                .unwrap();
+        assert_eq!(watched, plain);
+        let stopped = AtomicBool::new(true);
+        let mut fresh = IncrementalBands::default();
+        assert!(
+            update_surface_unless_stopped(&mut fresh, sequence, calibration, &options, &stopped)
+                .is_none()
+        );
+        assert_eq!(fresh.frames(), 0);
+        let again = update_surface(&mut fresh, sequence, calibration, &options).unwrap();
+        assert_eq!(again, plain);
     }
 }
