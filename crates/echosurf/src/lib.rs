@@ -37,6 +37,7 @@
 pub mod budget;
 pub mod error;
 pub mod io;
+pub mod line_echo;
 pub mod mesh;
 pub mod metrics;
 pub mod pipeline;

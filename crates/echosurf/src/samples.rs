@@ -197,7 +197,20 @@ pub fn near_echo_flags(
     level: f32,
     radius_cells: [usize; 2],
 ) -> Vec<bool> {
-    let n = set.len().min(cells.len());
+    let echoes: Vec<bool> = set.intensities.iter().map(|&x| x >= level).collect();
+    near_marked_flags(set, cells, &echoes, radius_cells)
+}
+
+/// [`near_echo_flags`] with the echo blocks given: the samples within `radius_cells` blocks (a box, in
+/// the same frame) of a sample marked in `echoes` (e.g. bright, or on a line echo:
+/// [`crate::line_echo::line_echo_blocks`]).
+pub fn near_marked_flags(
+    set: &SampleSet,
+    cells: &[[u32; 2]],
+    echoes: &[bool],
+    radius_cells: [usize; 2],
+) -> Vec<bool> {
+    let n = set.len().min(cells.len()).min(echoes.len());
     let mut flags = vec![false; set.len()];
     let mut start = 0;
     while start < n {
@@ -210,8 +223,8 @@ pub fn near_echo_flags(
         let rows = run.iter().map(|c| c[1] as usize + 1).max().unwrap_or(0);
         // Bright blocks, dilated along rows then columns (a separable box).
         let mut bright = vec![false; cols * rows];
-        for (c, &x) in run.iter().zip(&set.intensities[start..end]) {
-            if x >= level {
+        for (c, &echo) in run.iter().zip(&echoes[start..end]) {
+            if echo {
                 bright[c[1] as usize * cols + c[0] as usize] = true;
             }
         }
