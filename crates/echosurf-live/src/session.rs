@@ -338,7 +338,17 @@ pub fn surface_of(
     calibration: &Calibration,
     options: &ExtractOptions,
 ) -> echosurf::Result<Mesh> {
-    let output = pipeline::extract(sequence, Some(calibration), options, &NoProgress)?;
+    surface_with(sequence, calibration, options, &NoProgress)
+}
+
+/// [`surface_of`], reporting to `progress`.
+fn surface_with(
+    sequence: &TrackedSequence,
+    calibration: &Calibration,
+    options: &ExtractOptions,
+    progress: &dyn Progress,
+) -> echosurf::Result<Mesh> {
+    let output = pipeline::extract(sequence, Some(calibration), options, progress)?;
     Ok(first_mesh(output))
 }
 
@@ -463,8 +473,7 @@ fn update_surface_with(
     let masks = bands.extend(sequence, calibration, options);
     progress.finish();
     let Some(masks) = masks else {
-        let output = pipeline::extract(sequence, Some(calibration), options, progress)?;
-        return Ok(first_mesh(output));
+        return surface_with(sequence, calibration, options, progress);
     };
     let output =
         pipeline::extract_with_masks(sequence, Some(calibration), options, masks, progress)?;

@@ -10,7 +10,7 @@
 
 use rayon::prelude::*;
 
-use crate::samples::SampleSet;
+use crate::samples::{SampleSet, frame_runs};
 
 /// Shape of the line test, in mm of the image plane.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -95,17 +95,7 @@ pub fn line_echo_blocks(
         return vec![false; set.len()];
     }
     let stencils = stencils(test, block_mm);
-    let mut runs = Vec::new();
-    let mut start = 0;
-    while start < n {
-        let frame = set.frame_of_sample[start];
-        let end = (start..n)
-            .find(|&i| set.frame_of_sample[i] != frame)
-            .unwrap_or(n);
-        runs.push(start..end);
-        start = end;
-    }
-    let mut flags: Vec<bool> = runs
+    let mut flags: Vec<bool> = frame_runs(set, n)
         .into_par_iter()
         .flat_map_iter(|run| {
             frame_line_echoes(

@@ -212,12 +212,7 @@ pub fn near_marked_flags(
 ) -> Vec<bool> {
     let n = set.len().min(cells.len()).min(echoes.len());
     let mut flags = vec![false; set.len()];
-    let mut start = 0;
-    while start < n {
-        let frame = set.frame_of_sample[start];
-        let end = (start..n)
-            .find(|&i| set.frame_of_sample[i] != frame)
-            .unwrap_or(n);
+    for std::ops::Range { start, end } in frame_runs(set, n) {
         let run = &cells[start..end];
         let cols = run.iter().map(|c| c[0] as usize + 1).max().unwrap_or(0);
         let rows = run.iter().map(|c| c[1] as usize + 1).max().unwrap_or(0);
@@ -243,9 +238,24 @@ pub fn near_marked_flags(
             let hi = (row + radius_cells[1]).min(rows - 1);
             flags[i] = (lo..=hi).any(|r| across[r * cols + col]);
         }
-        start = end;
     }
     flags
+}
+
+/// The runs of consecutive samples of one frame among the first `n` (samples are collected frame by
+/// frame, so each run is one frame's).
+pub(crate) fn frame_runs(set: &SampleSet, n: usize) -> Vec<std::ops::Range<usize>> {
+    let mut runs = Vec::new();
+    let mut start = 0;
+    while start < n {
+        let frame = set.frame_of_sample[start];
+        let end = (start..n)
+            .find(|&i| set.frame_of_sample[i] != frame)
+            .unwrap_or(n);
+        runs.push(start..end);
+        start = end;
+    }
+    runs
 }
 
 /// `target` samples (all when there are fewer), the flagged ones first: up to `max_flagged` of them (a
