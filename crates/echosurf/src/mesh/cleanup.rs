@@ -203,7 +203,7 @@ impl Mesh {
                 if seen.len() >= min_frames {
                     continue;
                 }
-                buckets.visit_within(*v, radius_mm, &mut |k, _| {
+                buckets.visit_within(*v, radius_mm, |k, _| {
                     // An echo without a frame (slices of unequal length) backs nothing.
                     let Some(&frame) = echo_frames.get(k) else {
                         return true;

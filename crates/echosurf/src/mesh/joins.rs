@@ -224,7 +224,7 @@ impl Mesh {
         let mut candidates = Vec::new();
         for (i, &(a0, a1, fa)) in edges.iter().enumerate() {
             let na = self.triangle_unit_normal(self.triangles[fa]);
-            buckets.visit_within(midpoints[i], max_gap_mm, &mut |j, _| {
+            buckets.visit_within(midpoints[i], max_gap_mm, |j, _| {
                 let (b0, b1, fb) = edges[j];
                 // Each pair once; the condition below is symmetric in the two edges.
                 if j <= i || component[fa] == component[fb] {

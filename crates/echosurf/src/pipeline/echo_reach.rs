@@ -153,7 +153,7 @@ impl EchoReach {
         far.visit_within(
             p,
             self.max_distance_mm + self.largest_reach_mm,
-            &mut |k, echo| {
+            |k, echo| {
                 let d = p - echo;
                 let along = d.dot(self.normals[k]);
                 let in_plane2 = (d.length_squared() - along * along).max(0.0);

@@ -74,7 +74,7 @@ impl PointBuckets {
     /// Whether some trust point lies within the radius of `p` (inclusive).
     pub fn contains(&self, p: DVec3) -> bool {
         let mut found = false;
-        self.visit_within(p, self.radius_mm, &mut |_, _| {
+        self.visit_within(p, self.radius_mm, |_, _| {
             found = true;
             false
         });
@@ -84,16 +84,33 @@ impl PointBuckets {
     /// Calls `f(index, point)` for every point within `reach_mm` (at most the bucket radius) of `p`,
     /// `index` being its position in the slice given to [`PointBuckets::new`], in bucket order, until `f`
     /// returns false.
-    pub fn visit_within(&self, p: DVec3, reach_mm: f64, f: &mut dyn FnMut(usize, DVec3) -> bool) {
+    pub fn visit_within(&self, p: DVec3, reach_mm: f64, mut f: impl FnMut(usize, DVec3) -> bool) {
         let r2 = reach_mm.min(self.radius_mm).powi(2);
+        let mut go_on = true;
+        self.runs_around(p, |run| {
+            for k in run {
+                let t = self.points[k];
+                if t.distance_squared(p) <= r2 && !f(self.original[k] as usize, t) {
+                    go_on = false;
+                    break;
+                }
+            }
+            go_on
+        });
+    }
+
+    /// Calls `f(run)` with the range (into [`PointBuckets::sorted_points`]) of each non-empty (y, z) row of
+    /// three x-buckets around `p`, in the order [`PointBuckets::visit_within`] visits them, until `f`
+    /// returns false: every point within the bucket radius of `p` is in one of them. The three buckets
+    /// along x of one row have consecutive keys, so their points are one contiguous run: one search per
+    /// row instead of one per bucket.
+    pub fn runs_around(&self, p: DVec3, mut f: impl FnMut(std::ops::Range<usize>) -> bool) {
         let q = (p - self.origin_mm) / self.radius_mm;
         // Entirely below the origin by more than one bucket: nothing can be near.
         if !p.is_finite() || q.min_element() < -1.0 {
             return;
         }
         let b = self.bucket(p);
-        // The three buckets along x of one (y, z) row have consecutive keys, so their points are one
-        // contiguous run: one search per row instead of one per bucket, and the same visiting order.
         let x_lo = (b[0] - 1).max(0);
         let x_hi = (b[0] + 1).min(CELL_AXIS_MAX);
         for dz in -1..=1 {
@@ -109,14 +126,21 @@ impl PointBuckets {
                     continue;
                 }
                 let run = self.bucket_starts[first] as usize..self.bucket_starts[last] as usize;
-                for k in run {
-                    let t = self.points[k];
-                    if t.distance_squared(p) <= r2 && !f(self.original[k] as usize, t) {
-                        return;
-                    }
+                if !f(run) {
+                    return;
                 }
             }
         }
+    }
+
+    /// The (finite) points in bucket order: the ranges of [`PointBuckets::runs_around`] index them.
+    pub fn sorted_points(&self) -> &[DVec3] {
+        &self.points
+    }
+
+    /// Each sorted point's index in the slice given to [`PointBuckets::new`].
+    pub fn original_indices(&self) -> &[u32] {
+        &self.original
     }
 }
 
@@ -142,7 +166,7 @@ mod tests {
         for _ in 0..200 {
             let q = DVec3::new(rng.random(), rng.random(), rng.random()) * 30.0 - 10.0;
             let mut seen = Vec::new();
-            region.visit_within(q, 1.2, &mut |i, p| {
+            region.visit_within(q, 1.2, |i, p| {
                 assert_eq!(p, pts[i]);
                 seen.push(i);
                 true
@@ -152,6 +176,49 @@ mod tests {
                 .filter(|&i| pts[i].distance(q) <= 1.2)
                 .collect();
             assert_eq!(seen, brute);
+        }
+    }
+
+    #[test]
+    fn runs_around_cover_the_points_visit_within_visits_in_its_order() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let pts: Vec<DVec3> = (0..400)
+            .map(|_| DVec3::new(rng.random(), rng.random(), rng.random()) * 12.0 - 3.0)
+            .collect();
+        let region = PointBuckets::new(&pts, 1.5).unwrap();
+        let (sorted, original) = (region.sorted_points(), region.original_indices());
+        for (&p, &i) in sorted.iter().zip(original) {
+            assert_eq!(p, pts[i as usize]);
+        }
+        for _ in 0..500 {
+            let q = DVec3::new(rng.random(), rng.random(), rng.random()) * 18.0 - 6.0;
+            // Every point of the runs, in their order; with the radius as reach, visit_within's filter
+            // keeps exactly those within it, in the same order.
+            let mut in_runs = Vec::new();
+            region.runs_around(q, |run| {
+                in_runs.extend(run);
+                true
+            });
+            let mut visited = Vec::new();
+            region.visit_within(q, 1e9, |i, _| {
+                visited.push(i);
+                true
+            });
+            let within: Vec<usize> = in_runs
+                .iter()
+                .filter(|&&k| sorted[k].distance_squared(q) <= 1.5f64.powi(2))
+                .map(|&k| original[k] as usize)
+                .collect();
+            assert_eq!(within, visited);
+            // The runs hold every point within the radius, each once.
+            let mut unique = in_runs.clone();
+            unique.sort_unstable();
+            unique.dedup();
+            assert_eq!(unique.len(), in_runs.len());
+            let brute = (0..pts.len())
+                .filter(|&i| pts[i].distance(q) <= 1.5)
+                .count();
+            assert_eq!(within.len(), brute);
         }
     }
 }

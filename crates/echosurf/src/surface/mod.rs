@@ -56,6 +56,12 @@ pub trait ScalarField: Sync {
     fn nan_means_undefined(&self) -> bool {
         false
     }
+    /// Whether a point's value and gradient are the same whatever batch it is evaluated in (a batched
+    /// RBF evaluator's are not, to rounding): then a search may evaluate fewer points per batch and
+    /// still find what one batch finds.
+    fn values_are_pointwise(&self) -> bool {
+        false
+    }
 }
 
 /// An analytic field from a closure returning (value, gradient) at a point; for tests and phantoms.
@@ -84,6 +90,10 @@ impl<F: Fn(DVec3) -> (f64, DVec3) + Sync> ScalarField for FnField<F> {
             *v = value;
             *g = gradient;
         }
+    }
+
+    fn values_are_pointwise(&self) -> bool {
+        true
     }
 }
 
@@ -566,11 +576,27 @@ struct Projection {
 /// Offsets (in lattice spacings) along the gradient line where [`bisect_onto_level`] looks for a sign
 /// change of `s - level`, nearest first.
 const BRACKET_OFFSETS: [f64; 10] = [0.25, -0.25, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5, 2.0, -2.0];
+/// The brackets [`bisect_onto_level`] tries, nearest first (over all lines, the gradient line first at
+/// equal distance): pair `j` ends at `BRACKET_OFFSETS[j]` and starts at 0 or a nearer offset.
+const BRACKET_PAIRS: [(f64, f64); 10] = [
+    (0.0, 0.25),
+    (0.0, -0.25),
+    (0.25, 0.5),
+    (-0.25, -0.5),
+    (0.5, 1.0),
+    (-0.5, -1.0),
+    (1.0, 1.5),
+    (-1.0, -1.5),
+    (1.5, 2.0),
+    (-1.5, -2.0),
+];
 /// Bisection steps: the bracket (at most 2 spacings) shrinks below 1e-9 spacings.
 const BISECTION_STEPS: usize = 32;
 
 /// Search lines of [`bisect_onto_level`] besides the gradient's: the lattice axes.
 const AXIS_LINES: [DVec3; 3] = [DVec3::X, DVec3::Y, DVec3::Z];
+/// Search lines per start: the gradient's and the axes.
+const SEARCH_LINES: usize = 1 + AXIS_LINES.len();
 
 /// For each start point: the nearest sign change of `s - level` along the line through it in the
 /// direction of its gradient, else along a lattice axis (within two lattice spacings), then bisection of
@@ -584,7 +610,6 @@ fn bisect_onto_level(
     counter: &mut lattice::EvalCounter,
 ) -> (Vec<DVec3>, Vec<f64>, Vec<DVec3>) {
     let (v0, g0) = lattice::evaluate_gradients(field, starts, counter);
-    let lines = 1 + AXIS_LINES.len();
     let line = |k: usize, d: usize| -> DVec3 {
         if d == 0 {
             let n = g0[k].normalize_or_zero();
@@ -593,55 +618,25 @@ fn bisect_onto_level(
             AXIS_LINES[d - 1]
         }
     };
-    let per_start = lines * BRACKET_OFFSETS.len();
-    let probes: Vec<DVec3> = (0..starts.len())
-        .flat_map(|k| {
-            (0..lines).flat_map(move |d| {
-                BRACKET_OFFSETS.map(|t| starts[k] + line(k, d) * (t * spacing_mm))
-            })
-        })
-        .collect();
-    let (pv, _) = lattice::evaluate_gradients(field, &probes, counter);
+    let search = BracketSearch {
+        field,
+        level,
+        starts,
+        start_values: &v0,
+        line: &line,
+        spacing_mm,
+    };
+    let found = if field.values_are_pointwise() {
+        search.nearest_first(counter)
+    } else {
+        search.in_one_batch(counter)
+    };
     // Per start: its search line and bracket (t_a, value_a, t_b, value_b) in spacings, or None.
-    let mut directions: Vec<DVec3> = Vec::with_capacity(starts.len());
-    let mut brackets: Vec<Option<(f64, f64, f64, f64)>> = Vec::with_capacity(starts.len());
-    for k in 0..starts.len() {
-        let mut found = None;
-        // Nearest pair first (over all lines), the gradient line first at equal distance.
-        'search: for pair in [
-            (0.0, 0.25),
-            (0.0, -0.25),
-            (0.25, 0.5),
-            (-0.25, -0.5),
-            (0.5, 1.0),
-            (-0.5, -1.0),
-            (1.0, 1.5),
-            (-1.0, -1.5),
-            (1.5, 2.0),
-            (-1.5, -2.0),
-        ] {
-            for d in 0..lines {
-                let at = |t: f64| -> f64 {
-                    if t == 0.0 {
-                        v0[k] - level
-                    } else {
-                        let j = BRACKET_OFFSETS
-                            .iter()
-                            .position(|&o| o == t)
-                            .expect("offset");
-                        pv[k * per_start + d * BRACKET_OFFSETS.len() + j] - level
-                    }
-                };
-                let (a, b) = (at(pair.0), at(pair.1));
-                if a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0) {
-                    found = Some((d, (pair.0, a, pair.1, b)));
-                    break 'search;
-                }
-            }
-        }
-        directions.push(line(k, found.map_or(0, |(d, _)| d)));
-        brackets.push(found.map(|(_, b)| b));
-    }
+    let directions: Vec<DVec3> = (0..starts.len())
+        .map(|k| line(k, found[k].map_or(0, |(d, _)| d)))
+        .collect();
+    let mut brackets: Vec<Option<(f64, f64, f64, f64)>> =
+        found.iter().map(|f| f.map(|(_, b)| b)).collect();
     let active: Vec<usize> = (0..starts.len())
         .filter(|&k| brackets[k].is_some())
         .collect();
@@ -670,6 +665,110 @@ fn bisect_onto_level(
         .collect();
     let (values, gradients) = lattice::evaluate_gradients(field, &finals, counter);
     (finals, values, gradients)
+}
+
+/// The bracket search of [`bisect_onto_level`]: the start points, their values and search lines.
+struct BracketSearch<'a> {
+    field: &'a dyn ScalarField,
+    level: f64,
+    starts: &'a [DVec3],
+    start_values: &'a [f64],
+    /// The search line `d` (0: the gradient's) of start `k`.
+    line: &'a dyn Fn(usize, usize) -> DVec3,
+    spacing_mm: f64,
+}
+
+/// Per start: the search line and bracket `(t_a, value_a, t_b, value_b)` (in spacings, values less
+/// the level) found, if any.
+type Brackets = Vec<Option<(usize, (f64, f64, f64, f64))>>;
+
+impl BracketSearch<'_> {
+    /// The probe of start `k` on line `d` at `BRACKET_OFFSETS[j]`.
+    fn probe(&self, k: usize, d: usize, j: usize) -> DVec3 {
+        self.starts[k] + (self.line)(k, d) * (BRACKET_OFFSETS[j] * self.spacing_mm)
+    }
+
+    /// Where `probes` holds start `k`'s probe values (`SEARCH_LINES` lines of `BRACKET_OFFSETS` each):
+    /// the first of `pairs` (indices into [`BRACKET_PAIRS`]), on the first line, whose ends straddle
+    /// the level.
+    fn first_bracket(
+        &self,
+        k: usize,
+        probes: &[f64],
+        pairs: std::ops::Range<usize>,
+    ) -> Option<(usize, (f64, f64, f64, f64))> {
+        for pair in &BRACKET_PAIRS[pairs] {
+            for d in 0..SEARCH_LINES {
+                let at = |t: f64| -> f64 {
+                    if t == 0.0 {
+                        self.start_values[k] - self.level
+                    } else {
+                        let j = BRACKET_OFFSETS
+                            .iter()
+                            .position(|&o| o == t)
+                            .expect("offset");
+                        probes[d * BRACKET_OFFSETS.len() + j] - self.level
+                    }
+                };
+                let (a, b) = (at(pair.0), at(pair.1));
+                if a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0) {
+                    return Some((d, (pair.0, a, pair.1, b)));
+                }
+            }
+        }
+        None
+    }
+
+    /// Every probe of every start in one batch (a batched field's values depend on the batch, so
+    /// this keeps them as they were measured).
+    fn in_one_batch(&self, counter: &mut lattice::EvalCounter) -> Brackets {
+        let per_start = SEARCH_LINES * BRACKET_OFFSETS.len();
+        let probes: Vec<DVec3> = (0..self.starts.len())
+            .flat_map(|k| {
+                (0..SEARCH_LINES)
+                    .flat_map(move |d| (0..BRACKET_OFFSETS.len()).map(move |j| self.probe(k, d, j)))
+            })
+            .collect();
+        let (pv, _) = lattice::evaluate_gradients(self.field, &probes, counter);
+        (0..self.starts.len())
+            .map(|k| {
+                let own = &pv[k * per_start..(k + 1) * per_start];
+                self.first_bracket(k, own, 0..BRACKET_PAIRS.len())
+            })
+            .collect()
+    }
+
+    /// The same brackets for a pointwise field, evaluating the probes two offsets (the next pairs) at
+    /// a time and only for the starts still without a bracket: most find one at the nearest offsets.
+    fn nearest_first(&self, counter: &mut lattice::EvalCounter) -> Brackets {
+        let per_start = SEARCH_LINES * BRACKET_OFFSETS.len();
+        let mut pv = vec![f64::NAN; self.starts.len() * per_start];
+        let mut found: Brackets = vec![None; self.starts.len()];
+        let mut pending: Vec<usize> = (0..self.starts.len()).collect();
+        for round in (0..BRACKET_PAIRS.len()).step_by(2) {
+            if pending.is_empty() {
+                break;
+            }
+            let (lo, hi) = (round, (round + 2).min(BRACKET_PAIRS.len()));
+            let slots: Vec<(usize, usize, usize)> = pending
+                .iter()
+                .flat_map(|&k| {
+                    (0..SEARCH_LINES).flat_map(move |d| (lo..hi).map(move |j| (k, d, j)))
+                })
+                .collect();
+            let probes: Vec<DVec3> = slots.iter().map(|&(k, d, j)| self.probe(k, d, j)).collect();
+            let (values, _) = lattice::evaluate_gradients(self.field, &probes, counter);
+            for (&(k, d, j), &v) in slots.iter().zip(&values) {
+                pv[k * per_start + d * BRACKET_OFFSETS.len() + j] = v;
+            }
+            pending.retain(|&k| {
+                let own = &pv[k * per_start..(k + 1) * per_start];
+                found[k] = self.first_bracket(k, own, lo..hi);
+                found[k].is_none()
+            });
+        }
+        found
+    }
 }
 
 /// Rounds of untangling after projection.

@@ -93,7 +93,7 @@ pub fn sheet_through_points(
     let domain = SurfaceDomain {
         bounds_min_mm: domain.bounds_min_mm,
         bounds_max_mm: domain.bounds_max_mm,
-        seeds: field.points.clone(),
+        seeds: field.points_in_given_order(),
         trust_points: Vec::new(),
     };
     let (mut meshes, stats) = super::extract_surfaces_with_stats(&field, &[0.0], &domain, surface)?;
@@ -116,9 +116,10 @@ const SUPPORT_RADII: f64 = 3.0;
 
 /// The implicit surface of oriented points (see the module docs).
 pub(crate) struct OrientedPointField {
-    points: Vec<DVec3>,
-    normals: Vec<DVec3>,
+    /// The points (in `grid`'s bucket order, [`PointBuckets::sorted_points`]) and their unit normals in
+    /// the same order, so that [`OrientedPointField::at`] reads each run of neighbours as two slices.
     grid: PointBuckets,
+    normals: Vec<DVec3>,
     smoothing_mm: f64,
     reach_mm: f64,
     bridge_mm: f64,
@@ -140,34 +141,59 @@ impl OrientedPointField {
             .filter_map(|(&p, n)| Some((p, n.try_normalize()?)).filter(|_| p.is_finite()))
             .unzip();
         let support = SUPPORT_RADII * smoothing_mm;
+        // Every point is finite, so the grid keeps them all.
         let grid = PointBuckets::new(&points, support)?;
+        let normals = grid
+            .original_indices()
+            .iter()
+            .map(|&i| normals[i as usize])
+            .collect();
         Some(OrientedPointField {
-            points,
-            normals,
             grid,
+            normals,
             smoothing_mm,
             reach_mm: reach_mm.min(support),
             bridge_mm: bridge_mm.min(support),
         })
     }
 
-    /// Value and (the weighted mean normal as) gradient at `x`; NaN beyond reach.
+    /// The points in the order given to [`OrientedPointField::new`] (less those it dropped).
+    fn points_in_given_order(&self) -> Vec<DVec3> {
+        let mut points = vec![DVec3::ZERO; self.grid.sorted_points().len()];
+        for (&p, &i) in self
+            .grid
+            .sorted_points()
+            .iter()
+            .zip(self.grid.original_indices())
+        {
+            points[i as usize] = p;
+        }
+        points
+    }
+
+    /// Value and (the weighted mean normal as) gradient at `x`; NaN beyond reach. Sums over the points
+    /// within the support in the grid's visiting order ([`PointBuckets::visit_within`]'s).
     fn at(&self, x: DVec3) -> (f64, DVec3) {
         let inv_h2 = 1.0 / (self.smoothing_mm * self.smoothing_mm);
         let reach2 = self.reach_mm * self.reach_mm;
         let bridge2 = self.bridge_mm * self.bridge_mm;
+        let support2 = (SUPPORT_RADII * self.smoothing_mm).powi(2);
         let (mut weight, mut value, mut value2, mut normal) = (0.0, 0.0, 0.0, DVec3::ZERO);
         let mut within_reach = false;
         // Unit in-plane directions from the points that could bridge to `x`, and their count.
         let (mut around, mut bridging) = (DVec3::ZERO, 0usize);
-        self.grid
-            .visit_within(x, SUPPORT_RADII * self.smoothing_mm, &mut |i, p| {
+        let points = self.grid.sorted_points();
+        self.grid.runs_around(x, |run| {
+            for (&p, &n) in points[run.clone()].iter().zip(&self.normals[run]) {
                 let d = x - p;
                 let d2 = d.length_squared();
-                let along = d.dot(self.normals[i]);
+                if d2 > support2 {
+                    continue;
+                }
+                let along = d.dot(n);
                 within_reach |= d2 <= reach2;
                 if !within_reach && along * along <= reach2 {
-                    let across = d - self.normals[i] * along;
+                    let across = d - n * along;
                     if across.length_squared() <= bridge2
                         && let Some(u) = across.try_normalize()
                     {
@@ -179,9 +205,10 @@ impl OrientedPointField {
                 weight += w;
                 value += w * along;
                 value2 += w * along * along;
-                normal += w * self.normals[i];
-                true
-            });
+                normal += w * n;
+            }
+            true
+        });
         let bridged = || {
             bridging >= 2
                 && around.length() <= BRIDGE_MAX_IMBALANCE * bridging as f64
@@ -215,6 +242,10 @@ impl ScalarField for OrientedPointField {
     fn nan_means_undefined(&self) -> bool {
         true
     }
+
+    fn values_are_pointwise(&self) -> bool {
+        true
+    }
 }
 
 #[cfg(test)]
@@ -232,7 +263,8 @@ mod tests {
         }
         let normals = vec![DVec3::Z; points.len()];
         let field = OrientedPointField::new(&points, &normals, 0.5, 1.0, 0.0).unwrap();
-        assert_eq!(field.points.len(), points.len());
+        assert_eq!(field.grid.sorted_points().len(), points.len());
+        assert_eq!(field.points_in_given_order(), points);
         let mut v = [0.0; 3];
         let mut g = [DVec3::ZERO; 3];
         let probes = [

@@ -434,6 +434,9 @@ impl<F: Fn(DVec3) -> (f64, DVec3) + Sync> ScalarField for Confined<F> {
     fn nan_means_undefined(&self) -> bool {
         self.allow_nan
     }
+    fn values_are_pointwise(&self) -> bool {
+        true
+    }
 }
 
 #[test]
@@ -482,5 +485,72 @@ fn an_undefined_region_ends_the_surface_without_a_fake_crossing() {
             allow_nan: false,
         };
         assert!(extract_surfaces(&strict, &[0.0], &domain, &SurfaceOptions::default()).is_err());
+    }
+}
+
+#[test]
+fn the_nearest_first_bracket_search_finds_the_one_batch_search_s_brackets() {
+    // A wavy field, undefined for x > 2, whose "gradient" is a fixed tilt: the brackets fall on every
+    // line and at every distance, and some starts find none.
+    let wavy = |p: DVec3| -> (f64, DVec3) {
+        let v = (3.0 * p.x).sin() * (2.0 * p.y).cos() + 0.4 * (5.0 * p.z).sin() + 0.1 * p.x;
+        let v = if p.x > 2.0 { f64::NAN } else { v };
+        (v, DVec3::new(0.3, -1.0, 0.2))
+    };
+    let field = Confined {
+        inner: wavy,
+        allow_nan: true,
+    };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+    let starts: Vec<DVec3> = (0..3000)
+        .map(|_| {
+            use rand::Rng;
+            DVec3::new(rng.random(), rng.random(), rng.random()) * 6.0 - 3.0
+        })
+        .collect();
+    for level in [0.0, 0.7, 1.3] {
+        let mut counter = lattice::EvalCounter::default();
+        let (v0, g0) = lattice::evaluate_gradients(&field, &starts, &mut counter);
+        let line = |k: usize, d: usize| -> DVec3 {
+            if d == 0 {
+                g0[k].normalize_or_zero()
+            } else {
+                AXIS_LINES[d - 1]
+            }
+        };
+        let search = BracketSearch {
+            field: &field,
+            level,
+            starts: &starts,
+            start_values: &v0,
+            line: &line,
+            spacing_mm: 0.4,
+        };
+        let (mut batch_count, mut nearest_count) = (counter, counter);
+        let batch = search.in_one_batch(&mut batch_count);
+        let nearest = search.nearest_first(&mut nearest_count);
+        let bits = |b: &Brackets| -> Vec<Option<(usize, [u64; 4])>> {
+            b.iter()
+                .map(|f| f.map(|(d, (ta, va, tb, vb))| (d, [ta, va, tb, vb].map(f64::to_bits))))
+                .collect()
+        };
+        assert_eq!(bits(&batch), bits(&nearest), "level {level}");
+        // The cases are all there: every line, near and far brackets, and none.
+        let lines: std::collections::BTreeSet<usize> =
+            batch.iter().flatten().map(|&(d, _)| d).collect();
+        assert_eq!(lines.len(), SEARCH_LINES, "level {level}: {lines:?}");
+        let far = batch
+            .iter()
+            .flatten()
+            .filter(|(_, b)| b.2.abs() >= 1.0)
+            .count();
+        assert!(far > 0, "level {level}");
+        assert!(batch.iter().any(Option::is_none), "level {level}");
+        assert!(
+            nearest_count.gradients < batch_count.gradients,
+            "level {level}: {} vs {}",
+            nearest_count.gradients,
+            batch_count.gradients
+        );
     }
 }
