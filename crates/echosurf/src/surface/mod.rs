@@ -577,19 +577,11 @@ struct Projection {
 /// change of `s - level`, nearest first.
 const BRACKET_OFFSETS: [f64; 10] = [0.25, -0.25, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5, 2.0, -2.0];
 /// The brackets [`bisect_onto_level`] tries, nearest first (over all lines, the gradient line first at
-/// equal distance): pair `j` ends at `BRACKET_OFFSETS[j]` and starts at 0 or a nearer offset.
-const BRACKET_PAIRS: [(f64, f64); 10] = [
-    (0.0, 0.25),
-    (0.0, -0.25),
-    (0.25, 0.5),
-    (-0.25, -0.5),
-    (0.5, 1.0),
-    (-0.5, -1.0),
-    (1.0, 1.5),
-    (-1.0, -1.5),
-    (1.5, 2.0),
-    (-1.5, -2.0),
-];
+/// equal distance): bracket `j` ends at `BRACKET_OFFSETS[j]` and starts at the nearer offset on the
+/// same side, `BRACKET_OFFSETS[j - 2]`, or at the start point itself for the first two.
+fn bracket_near_end(j: usize) -> Option<usize> {
+    j.checked_sub(2)
+}
 /// Bisection steps: the bracket (at most 2 spacings) shrinks below 1e-9 spacings.
 const BISECTION_STEPS: usize = 32;
 
@@ -689,30 +681,24 @@ impl BracketSearch<'_> {
     }
 
     /// Where `probes` holds start `k`'s probe values (`SEARCH_LINES` lines of `BRACKET_OFFSETS` each):
-    /// the first of `pairs` (indices into [`BRACKET_PAIRS`]), on the first line, whose ends straddle
-    /// the level.
+    /// the first of the brackets `pairs` (see [`bracket_near_end`]), on the first line, whose ends
+    /// straddle the level.
     fn first_bracket(
         &self,
         k: usize,
         probes: &[f64],
         pairs: std::ops::Range<usize>,
     ) -> Option<(usize, (f64, f64, f64, f64))> {
-        for pair in &BRACKET_PAIRS[pairs] {
+        for j in pairs {
             for d in 0..SEARCH_LINES {
-                let at = |t: f64| -> f64 {
-                    if t == 0.0 {
-                        self.start_values[k] - self.level
-                    } else {
-                        let j = BRACKET_OFFSETS
-                            .iter()
-                            .position(|&o| o == t)
-                            .expect("offset");
-                        probes[d * BRACKET_OFFSETS.len() + j] - self.level
-                    }
+                let on_line = &probes[d * BRACKET_OFFSETS.len()..(d + 1) * BRACKET_OFFSETS.len()];
+                let (ta, a) = match bracket_near_end(j) {
+                    None => (0.0, self.start_values[k] - self.level),
+                    Some(i) => (BRACKET_OFFSETS[i], on_line[i] - self.level),
                 };
-                let (a, b) = (at(pair.0), at(pair.1));
+                let (tb, b) = (BRACKET_OFFSETS[j], on_line[j] - self.level);
                 if a.is_finite() && b.is_finite() && (a <= 0.0) != (b <= 0.0) {
-                    return Some((d, (pair.0, a, pair.1, b)));
+                    return Some((d, (ta, a, tb, b)));
                 }
             }
         }
@@ -733,23 +719,24 @@ impl BracketSearch<'_> {
         (0..self.starts.len())
             .map(|k| {
                 let own = &pv[k * per_start..(k + 1) * per_start];
-                self.first_bracket(k, own, 0..BRACKET_PAIRS.len())
+                self.first_bracket(k, own, 0..BRACKET_OFFSETS.len())
             })
             .collect()
     }
 
-    /// The same brackets for a pointwise field, evaluating the probes two offsets (the next pairs) at
-    /// a time and only for the starts still without a bracket: most find one at the nearest offsets.
+    /// The same brackets for a pointwise field, evaluating the probes two offsets (the far ends of the
+    /// next two brackets) at a time and only for the starts still without a bracket: most find one at
+    /// the nearest offsets.
     fn nearest_first(&self, counter: &mut lattice::EvalCounter) -> Brackets {
         let per_start = SEARCH_LINES * BRACKET_OFFSETS.len();
         let mut pv = vec![f64::NAN; self.starts.len() * per_start];
         let mut found: Brackets = vec![None; self.starts.len()];
         let mut pending: Vec<usize> = (0..self.starts.len()).collect();
-        for round in (0..BRACKET_PAIRS.len()).step_by(2) {
+        for round in (0..BRACKET_OFFSETS.len()).step_by(2) {
             if pending.is_empty() {
                 break;
             }
-            let (lo, hi) = (round, (round + 2).min(BRACKET_PAIRS.len()));
+            let (lo, hi) = (round, (round + 2).min(BRACKET_OFFSETS.len()));
             let slots: Vec<(usize, usize, usize)> = pending
                 .iter()
                 .flat_map(|&k| {
