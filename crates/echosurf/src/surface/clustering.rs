@@ -23,6 +23,11 @@
 //! contracted edge disappear; the others keep their winding, so orientation survives.
 
 use glam::DVec3;
+use smallvec::SmallVec;
+
+/// The triangles around one vertex: a raw marching-tetrahedra vertex has at most 12 (two per
+/// tetrahedron around its lattice edge), so most lists never leave the inline storage.
+type FaceList = SmallVec<[u32; 12]>;
 
 /// The merged mesh: positions (cluster centroids, before projection onto the surface) and triangles.
 #[derive(Debug, Default)]
@@ -37,6 +42,9 @@ pub(crate) struct ClusteredSurface {
 
 const OMEGA: u32 = u32::MAX;
 
+/// The link of a vertex written out (vertex and edge parts, sorted): the definition the fast test in
+/// [`Work::link_condition`] is checked against.
+#[cfg(test)]
 #[derive(Default)]
 struct Link {
     verts: Vec<u32>,
@@ -45,6 +53,7 @@ struct Link {
     into: Vec<u32>,
 }
 
+#[cfg(test)]
 impl Link {
     fn clear(&mut self) {
         self.verts.clear();
@@ -54,11 +63,70 @@ impl Link {
     }
 }
 
+/// Marks of which side of which of two vertices' triangles a neighbour was seen on.
+const U_OUT: u8 = 1;
+const U_IN: u8 = 2;
+const V_OUT: u8 = 4;
+const V_IN: u8 = 8;
+
 #[derive(Default)]
 struct Scratch {
+    /// Per vertex, the marks of the current test (valid where `stamps` equals `epoch`).
+    marks: Vec<u8>,
+    stamps: Vec<u32>,
+    epoch: u32,
+    /// Vertices marked in the current test.
+    marked: Vec<u32>,
+    #[cfg(test)]
     edge_link: Vec<u32>,
+    #[cfg(test)]
     lu: Link,
+    #[cfg(test)]
     lv: Link,
+    /// Decisions checked against the definition: refused, accepted.
+    #[cfg(test)]
+    checked: [usize; 2],
+}
+
+impl Scratch {
+    /// Starts a test over a mesh of `vertices` vertices: every mark cleared.
+    fn begin(&mut self, vertices: usize) {
+        if self.stamps.len() < vertices {
+            self.stamps.resize(vertices, 0);
+            self.marks.resize(vertices, 0);
+        }
+        self.epoch = self.epoch.wrapping_add(1);
+        if self.epoch == 0 {
+            self.stamps.fill(0);
+            self.epoch = 1;
+        }
+        self.marked.clear();
+    }
+
+    fn mark(&mut self, x: u32, bit: u8) {
+        let i = x as usize;
+        if self.stamps[i] != self.epoch {
+            self.stamps[i] = self.epoch;
+            self.marks[i] = 0;
+            self.marked.push(x);
+        }
+        self.marks[i] |= bit;
+    }
+
+    fn marks_of(&self, x: u32) -> u8 {
+        if self.stamps[x as usize] == self.epoch {
+            self.marks[x as usize]
+        } else {
+            0
+        }
+    }
+}
+
+/// Whether marks `m` say the vertex lies on a boundary edge of the vertex whose marks are `out | into`
+/// (an edge to it in one direction only).
+fn on_boundary_edge(m: u8, out: u8, into: u8) -> bool {
+    let both = m & (out | into);
+    both == out || both == into
 }
 
 struct Work {
@@ -66,7 +134,7 @@ struct Work {
     weight: Vec<f64>,
     faces: Vec<[u32; 3]>,
     face_alive: Vec<bool>,
-    vertex_faces: Vec<Vec<u32>>,
+    vertex_faces: Vec<FaceList>,
     min_area2: f64,
 }
 
@@ -83,6 +151,7 @@ impl Work {
 
     /// Vertex part (sorted neighbours, plus ω if on the boundary) and edge part (sorted pairs) of Lk(x),
     /// into `out` (buffers reused across calls: this runs for every candidate merge).
+    #[cfg(test)]
     fn link(&self, x: u32, out: &mut Link) {
         out.clear();
         for &f in &self.vertex_faces[x as usize] {
@@ -123,7 +192,9 @@ impl Work {
         out.edges.dedup();
     }
 
-    fn link_condition(&self, u: u32, v: u32, scratch: &mut Scratch) -> bool {
+    /// The link condition by its definition: both links written out and compared.
+    #[cfg(test)]
+    fn link_condition_by_links(&self, u: u32, v: u32, scratch: &mut Scratch) -> bool {
         let edge_link = &mut scratch.edge_link;
         edge_link.clear();
         let mut uses = 0;
@@ -158,6 +229,67 @@ impl Work {
             return false;
         }
         !lu.edges.iter().any(|e| lv.edges.binary_search(e).is_ok())
+    }
+
+    /// The link condition of the module documentation, `Lk(u) ∩ Lk(v) = Lk(uv)`, without writing the
+    /// links out. The common neighbours of u and v include the apexes of the triangles on uv, so the
+    /// vertex part holds when the apexes are distinct, no other vertex is common, and ω is common (both
+    /// are boundary vertices) exactly when uv is a boundary edge. Then every common edge joins two of
+    /// those: the two apexes (a triangle u a0 a1 and a triangle v a0 a1) or the one apex and ω (u a0
+    /// and v a0 both boundary edges).
+    fn link_condition(&self, u: u32, v: u32, scratch: &mut Scratch) -> bool {
+        let mut apexes = [OMEGA; 2];
+        let mut uses = 0;
+        for &f in &self.vertex_faces[u as usize] {
+            let t = self.faces[f as usize];
+            if t.contains(&v) {
+                for w in t.into_iter().filter(|&w| w != u && w != v) {
+                    if uses == 2 {
+                        return false;
+                    }
+                    apexes[uses] = w;
+                    uses += 1;
+                }
+            }
+        }
+        if uses == 0 || uses == 2 && apexes[0] == apexes[1] {
+            return false;
+        }
+        scratch.begin(self.pos_sum.len());
+        for (x, out, into) in [(u, U_OUT, U_IN), (v, V_OUT, V_IN)] {
+            for &f in &self.vertex_faces[x as usize] {
+                let t = self.faces[f as usize];
+                let i = t
+                    .iter()
+                    .position(|&w| w == x)
+                    .expect("face lists its vertex");
+                scratch.mark(t[(i + 1) % 3], out);
+                scratch.mark(t[(i + 2) % 3], into);
+            }
+        }
+        let (mut common, mut u_boundary, mut v_boundary) = (0, false, false);
+        for &x in &scratch.marked {
+            let m = scratch.marks[x as usize];
+            let (of_u, of_v) = (m & (U_OUT | U_IN) != 0, m & (V_OUT | V_IN) != 0);
+            common += usize::from(of_u && of_v);
+            u_boundary |= of_u && on_boundary_edge(m, U_OUT, U_IN);
+            v_boundary |= of_v && on_boundary_edge(m, V_OUT, V_IN);
+        }
+        if common != uses || (uses == 1) != (u_boundary && v_boundary) {
+            return false;
+        }
+        if uses == 1 {
+            let m = scratch.marks_of(apexes[0]);
+            !(on_boundary_edge(m, U_OUT, U_IN) && on_boundary_edge(m, V_OUT, V_IN))
+        } else {
+            let has_triangle_with = |x: u32| {
+                self.vertex_faces[x as usize].iter().any(|&f| {
+                    let t = self.faces[f as usize];
+                    t.contains(&apexes[0]) && t.contains(&apexes[1])
+                })
+            };
+            !(has_triangle_with(u) && has_triangle_with(v))
+        }
     }
 
     /// Rule 2: the surviving triangles around u and v neither fold over nor degenerate at the new
@@ -205,7 +337,7 @@ impl Work {
                 self.face_alive[f as usize] = false;
                 for w in t {
                     if w != v {
-                        self.vertex_faces[w as usize].retain(|&g| g != f);
+                        self.vertex_faces[w as usize].retain(|g| *g != f);
                     }
                 }
             } else {
@@ -235,7 +367,7 @@ pub(crate) fn cluster_vertices(
         weight: vec![1.0; n],
         faces: triangles.to_vec(),
         face_alive: vec![true; triangles.len()],
-        vertex_faces: vec![Vec::new(); n],
+        vertex_faces: vec![FaceList::new(); n],
         // |cross|^2 = (2 * area)^2; refuse areas below 1e-6 of a cell face.
         min_area2: (2e-6 * cell_area_mm2).powi(2),
     };
@@ -245,52 +377,13 @@ pub(crate) fn cluster_vertices(
         }
     }
     let mut order: Vec<u32> = (0..n as u32).collect();
-    order.sort_by_key(|&v| (cluster_keys[v as usize], v));
-    let mut refused = 0;
-    let mut scratch = Scratch::default();
-    for group in order.chunk_by(|&a, &b| cluster_keys[a as usize] == cluster_keys[b as usize]) {
-        if group.len() < 2 {
-            continue;
-        }
-        let mut members: Vec<u32> = group.to_vec();
-        let mut blocked: Vec<(u32, u32)> = Vec::new();
-        // Passes over all pairs until one merges nothing (a merge can make a refused pair acceptable
-        // or join two vertices that were not adjacent before).
-        loop {
-            let mut merged_any = false;
-            let mut i = 0;
-            while i < members.len() {
-                let mut j = i + 1;
-                while j < members.len() {
-                    let (u, v) = (members[i], members[j]);
-                    if work.adjacent(u, v) {
-                        let new_position = (work.pos_sum[u as usize] + work.pos_sum[v as usize])
-                            / (work.weight[u as usize] + work.weight[v as usize]);
-                        if work.link_condition(u, v, &mut scratch)
-                            && work.keeps_shape(u, v, new_position)
-                        {
-                            work.contract(u, v);
-                            members.remove(j);
-                            merged_any = true;
-                            continue;
-                        } else if !blocked.contains(&(u, v)) {
-                            blocked.push((u, v));
-                        }
-                    }
-                    j += 1;
-                }
-                i += 1;
-            }
-            if !merged_any {
-                break;
-            }
-        }
-        // A pair refused at some point but later merged through another contraction is not a refusal.
-        refused += blocked
-            .iter()
-            .filter(|(u, v)| members.contains(u) && members.contains(v) && work.adjacent(*u, *v))
-            .count();
-    }
+    order.sort_unstable_by_key(|&v| (cluster_keys[v as usize], v));
+    let mut scratch = GroupScratch::default();
+    let refused = order
+        .chunk_by(|&a, &b| cluster_keys[a as usize] == cluster_keys[b as usize])
+        .filter(|group| group.len() >= 2)
+        .map(|group| cluster_group(&mut work, group, &mut scratch))
+        .sum();
     // Compact: surviving triangles in their original order, vertices in raw index order.
     let mut new_index = vec![u32::MAX; n];
     let mut used = vec![false; n];
@@ -322,6 +415,71 @@ pub(crate) fn cluster_vertices(
     out
 }
 
+/// Reused buffers of one group's merging.
+#[derive(Default)]
+struct GroupScratch {
+    link: Scratch,
+    members: Vec<u32>,
+    blocked: Vec<(u32, u32)>,
+}
+
+/// Merges the vertices of one cluster (`group`, in index order); returns the merges refused.
+fn cluster_group(work: &mut Work, group: &[u32], scratch: &mut GroupScratch) -> usize {
+    let GroupScratch {
+        link,
+        members,
+        blocked,
+    } = scratch;
+    members.clear();
+    members.extend_from_slice(group);
+    blocked.clear();
+    // Passes over all pairs until one merges nothing (a merge can make a refused pair acceptable or
+    // join two vertices that were not adjacent before).
+    loop {
+        let mut merged_any = false;
+        let mut i = 0;
+        while i < members.len() {
+            let mut j = i + 1;
+            while j < members.len() {
+                let (u, v) = (members[i], members[j]);
+                if work.adjacent(u, v) {
+                    let new_position = (work.pos_sum[u as usize] + work.pos_sum[v as usize])
+                        / (work.weight[u as usize] + work.weight[v as usize]);
+                    let linked = work.link_condition(u, v, link);
+                    #[cfg(test)]
+                    assert_eq!(
+                        linked,
+                        work.link_condition_by_links(u, v, link),
+                        "the link condition's fast test disagrees with its definition on {u}-{v}"
+                    );
+                    #[cfg(test)]
+                    {
+                        link.checked[usize::from(linked)] += 1;
+                    }
+                    if linked && work.keeps_shape(u, v, new_position) {
+                        work.contract(u, v);
+                        members.remove(j);
+                        merged_any = true;
+                        continue;
+                    } else if !blocked.contains(&(u, v)) {
+                        blocked.push((u, v));
+                    }
+                }
+                j += 1;
+            }
+            i += 1;
+        }
+        if !merged_any {
+            break;
+        }
+    }
+    // A pair refused at some point but later merged through another contraction is not a refusal.
+    blocked
+        .iter()
+        .filter(|(u, v)| members.contains(u) && members.contains(v) && work.adjacent(*u, *v))
+        .count()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -334,6 +492,65 @@ mod tests {
             triangles: c.triangles.clone(),
         }
         .topology()
+    }
+
+    /// The raw marching-tetrahedra surface of a bumpy sphere cut open by the lattice's box (so it has
+    /// a boundary), clustered: every link-condition decision is checked against the definition (in
+    /// `cluster_group`), and both answers occur often.
+    #[test]
+    fn the_fast_link_condition_decides_as_the_written_out_links_do() {
+        use crate::spatial::cell_grid::pack_cell;
+        use crate::surface::lattice::Lattice;
+        use crate::surface::rmt::march_tetrahedra;
+        let lattice = Lattice::new(DVec3::splat(-3.6), DVec3::new(2.1, 3.6, 3.6), 0.25).unwrap();
+        let value = |n: [i32; 3]| {
+            let p = lattice.node_position(n);
+            p.length() - 3.0 + 0.35 * (7.0 * p.x).sin() * (5.0 * p.y).sin() * (6.0 * p.z).sin()
+        };
+        let mut cells = Vec::new();
+        for k in 0..lattice.cells[2] {
+            for j in 0..lattice.cells[1] {
+                for i in 0..lattice.cells[0] {
+                    cells.push(pack_cell([i, j, k]));
+                }
+            }
+        }
+        cells.sort_unstable();
+        for factor in [1.1, 1.6] {
+            let raw = march_tetrahedra(&lattice, &cells, 0.0, factor, value);
+            let n = raw.positions.len();
+            let mut work_scratch = GroupScratch::default();
+            let c = cluster_vertices(&raw.positions, &raw.cluster_keys, &raw.triangles, 0.0625);
+            // The same merges again, counting the decisions the assertion compared.
+            let mut work = Work {
+                pos_sum: raw.positions.clone(),
+                weight: vec![1.0; n],
+                faces: raw.triangles.clone(),
+                face_alive: vec![true; raw.triangles.len()],
+                vertex_faces: vec![FaceList::new(); n],
+                min_area2: (2e-6 * 0.0625f64).powi(2),
+            };
+            for (f, t) in raw.triangles.iter().enumerate() {
+                for &v in t {
+                    work.vertex_faces[v as usize].push(f as u32);
+                }
+            }
+            let mut order: Vec<u32> = (0..n as u32).collect();
+            order.sort_unstable_by_key(|&v| (raw.cluster_keys[v as usize], v));
+            let refused: usize = order
+                .chunk_by(|&a, &b| raw.cluster_keys[a as usize] == raw.cluster_keys[b as usize])
+                .filter(|g| g.len() >= 2)
+                .map(|g| cluster_group(&mut work, g, &mut work_scratch))
+                .sum();
+            assert_eq!(refused, c.refused_merges);
+            let [no, yes] = work_scratch.link.checked;
+            assert!(
+                no >= 50 && yes >= 1000,
+                "factor {factor}: {no} refused, {yes} accepted"
+            );
+            let t = topo(&c);
+            assert!(t.is_oriented_manifold() && t.boundary_edges > 0, "{t:?}");
+        }
     }
 
     /// An octahedron: contracting any edge would leave a tetrahedron-like shape; one edge is fine, but

@@ -142,8 +142,18 @@ pub(crate) fn march_tetrahedra(
                     [ids[0], ids[2], ids[1]]
                 });
             };
-            let highs: Vec<usize> = tet.iter().copied().filter(|&c| high[c]).collect();
-            let lows: Vec<usize> = tet.iter().copied().filter(|&c| !high[c]).collect();
+            // The tetrahedron's corners above the level, then those below (in corner order).
+            let (mut highs, mut lows) = ([0usize; 4], [0usize; 4]);
+            let (mut n_highs, mut n_lows) = (0, 0);
+            for &c in &tet {
+                if high[c] {
+                    highs[n_highs] = c;
+                    n_highs += 1;
+                } else {
+                    lows[n_lows] = c;
+                    n_lows += 1;
+                }
+            }
             match n_high {
                 1 | 3 => {
                     let (apex, base) = if n_high == 1 {
