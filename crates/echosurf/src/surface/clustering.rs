@@ -143,6 +143,17 @@ impl Work {
         self.pos_sum[v as usize] / self.weight[v as usize]
     }
 
+    /// The other two vertices of face `f` in its winding order after `x` (the directed edges x -> p
+    /// and q -> x).
+    fn after(&self, f: u32, x: u32) -> (u32, u32) {
+        let t = self.faces[f as usize];
+        let i = t
+            .iter()
+            .position(|&v| v == x)
+            .expect("face lists its vertex");
+        (t[(i + 1) % 3], t[(i + 2) % 3])
+    }
+
     fn adjacent(&self, a: u32, b: u32) -> bool {
         self.vertex_faces[a as usize]
             .iter()
@@ -155,12 +166,7 @@ impl Work {
     fn link(&self, x: u32, out: &mut Link) {
         out.clear();
         for &f in &self.vertex_faces[x as usize] {
-            let t = self.faces[f as usize];
-            let i = t
-                .iter()
-                .position(|&v| v == x)
-                .expect("face lists its vertex");
-            let (p, q) = (t[(i + 1) % 3], t[(i + 2) % 3]);
+            let (p, q) = self.after(f, x);
             out.verts.push(p);
             out.verts.push(q);
             out.edges.push((p.min(q), p.max(q)));
@@ -258,13 +264,9 @@ impl Work {
         scratch.begin(self.pos_sum.len());
         for (x, out, into) in [(u, U_OUT, U_IN), (v, V_OUT, V_IN)] {
             for &f in &self.vertex_faces[x as usize] {
-                let t = self.faces[f as usize];
-                let i = t
-                    .iter()
-                    .position(|&w| w == x)
-                    .expect("face lists its vertex");
-                scratch.mark(t[(i + 1) % 3], out);
-                scratch.mark(t[(i + 2) % 3], into);
+                let (p, q) = self.after(f, x);
+                scratch.mark(p, out);
+                scratch.mark(q, into);
             }
         }
         let (mut common, mut u_boundary, mut v_boundary) = (0, false, false);
