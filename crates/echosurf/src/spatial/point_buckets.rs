@@ -149,12 +149,17 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
+    /// `n` points uniform in the cube [-below, side - below]^3 (mm).
+    fn random_points(rng: &mut impl Rng, n: usize, side: f64, below: f64) -> Vec<DVec3> {
+        (0..n)
+            .map(|_| DVec3::new(rng.random(), rng.random(), rng.random()) * side - below)
+            .collect()
+    }
+
     #[test]
     fn matches_brute_force() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-        let pts: Vec<DVec3> = (0..300)
-            .map(|_| DVec3::new(rng.random(), rng.random(), rng.random()) * 20.0 - 5.0)
-            .collect();
+        let pts = random_points(&mut rng, 300, 20.0, 5.0);
         let region = PointBuckets::new(&pts, 1.5).unwrap();
         for _ in 0..2000 {
             let q = DVec3::new(rng.random(), rng.random(), rng.random()) * 30.0 - 10.0;
@@ -182,9 +187,7 @@ mod tests {
     #[test]
     fn runs_around_cover_the_points_visit_within_visits_in_its_order() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-        let pts: Vec<DVec3> = (0..400)
-            .map(|_| DVec3::new(rng.random(), rng.random(), rng.random()) * 12.0 - 3.0)
-            .collect();
+        let pts = random_points(&mut rng, 400, 12.0, 3.0);
         let region = PointBuckets::new(&pts, 1.5).unwrap();
         let (sorted, original) = (region.sorted_points(), region.original_indices());
         for (&p, &i) in sorted.iter().zip(original) {

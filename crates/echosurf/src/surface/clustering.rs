@@ -363,6 +363,24 @@ pub(crate) fn cluster_vertices(
     triangles: &[[u32; 3]],
     cell_area_mm2: f64,
 ) -> ClusteredSurface {
+    let mut scratch = GroupScratch::default();
+    cluster_vertices_with(
+        positions,
+        cluster_keys,
+        triangles,
+        cell_area_mm2,
+        &mut scratch,
+    )
+}
+
+/// [`cluster_vertices`] with the caller's buffers (the tests read what they counted).
+fn cluster_vertices_with(
+    positions: &[DVec3],
+    cluster_keys: &[u64],
+    triangles: &[[u32; 3]],
+    cell_area_mm2: f64,
+    scratch: &mut GroupScratch,
+) -> ClusteredSurface {
     let n = positions.len();
     let mut work = Work {
         pos_sum: positions.to_vec(),
@@ -380,11 +398,10 @@ pub(crate) fn cluster_vertices(
     }
     let mut order: Vec<u32> = (0..n as u32).collect();
     order.sort_unstable_by_key(|&v| (cluster_keys[v as usize], v));
-    let mut scratch = GroupScratch::default();
     let refused = order
         .chunk_by(|&a, &b| cluster_keys[a as usize] == cluster_keys[b as usize])
         .filter(|group| group.len() >= 2)
-        .map(|group| cluster_group(&mut work, group, &mut scratch))
+        .map(|group| cluster_group(&mut work, group, scratch))
         .sum();
     // Compact: surviving triangles in their original order, vertices in raw index order.
     let mut new_index = vec![u32::MAX; n];
@@ -520,32 +537,15 @@ mod tests {
         cells.sort_unstable();
         for factor in [1.1, 1.6] {
             let raw = march_tetrahedra(&lattice, &cells, 0.0, factor, value);
-            let n = raw.positions.len();
-            let mut work_scratch = GroupScratch::default();
-            let c = cluster_vertices(&raw.positions, &raw.cluster_keys, &raw.triangles, 0.0625);
-            // The same merges again, counting the decisions the assertion compared.
-            let mut work = Work {
-                pos_sum: raw.positions.clone(),
-                weight: vec![1.0; n],
-                faces: raw.triangles.clone(),
-                face_alive: vec![true; raw.triangles.len()],
-                vertex_faces: vec![FaceList::new(); n],
-                min_area2: (2e-6 * 0.0625f64).powi(2),
-            };
-            for (f, t) in raw.triangles.iter().enumerate() {
-                for &v in t {
-                    work.vertex_faces[v as usize].push(f as u32);
-                }
-            }
-            let mut order: Vec<u32> = (0..n as u32).collect();
-            order.sort_unstable_by_key(|&v| (raw.cluster_keys[v as usize], v));
-            let refused: usize = order
-                .chunk_by(|&a, &b| raw.cluster_keys[a as usize] == raw.cluster_keys[b as usize])
-                .filter(|g| g.len() >= 2)
-                .map(|g| cluster_group(&mut work, g, &mut work_scratch))
-                .sum();
-            assert_eq!(refused, c.refused_merges);
-            let [no, yes] = work_scratch.link.checked;
+            let mut scratch = GroupScratch::default();
+            let c = cluster_vertices_with(
+                &raw.positions,
+                &raw.cluster_keys,
+                &raw.triangles,
+                0.0625,
+                &mut scratch,
+            );
+            let [no, yes] = scratch.link.checked;
             assert!(
                 no >= 50 && yes >= 1000,
                 "factor {factor}: {no} refused, {yes} accepted"
