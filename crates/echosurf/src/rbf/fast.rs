@@ -9,7 +9,9 @@
 //!
 //! The iteration stops when the system residual `max_i |f_i - s(x_i) + w l_i|` (grey levels; equal to the
 //! data misfit at w = 0) is below the fitting accuracy, measured with the accurate treecode product (the
-//! model's evaluation accuracy). The Arnoldi products use a cheaper treecode (see [`inner_params`]).
+//! model's evaluation accuracy). The Arnoldi products use a cheaper treecode (see [`inner_params`]) when
+//! its error on the first solution-like vector is within a few times the accuracy, and the accurate one
+//! otherwise.
 //!
 //! Measured (ultrasound-like samples, w = 1, accuracy 2, eval accuracy 1e-4; 2 shared cores giving about
 //! one core's throughput): one-level Schwarz needed 28 iterations / 2.4 s at 10k and 633 s at 100k (issue
@@ -40,6 +42,9 @@ const RESTART: usize = 40;
 /// Measured at 10k samples: |C| = 256 -> 15 iterations, 1,024 -> 11, 2,048 -> 7 (overlap 96).
 const COARSE_MAX_POINTS: usize = 2048;
 const COARSE_RATIO: usize = 8;
+/// The cheap Arnoldi product is used only when its error on a solution-like vector is at most this many
+/// times the fitting accuracy (docs/decisions/0043-arnoldi-product-accuracy.md).
+const CHEAP_PRODUCT_MAX_ERROR_RATIO: f64 = 4.0;
 
 /// Where the global fast solver spent its time (wall-clock seconds) and how often.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
@@ -50,11 +55,14 @@ pub struct FastBreakdown {
     /// Products with the accurate treecode (one per true-residual check).
     pub accurate_products: usize,
     pub accurate_product_seconds: f64,
-    /// Products with the cheap inner treecode (one per GMRES iteration).
+    /// Products with the cheap inner treecode: one to measure its error, then one per GMRES iteration
+    /// unless that error was too large ([`FastBreakdown::accurate_arnoldi`]).
     pub inner_products: usize,
     pub inner_product_seconds: f64,
     pub preconditioner_applications: usize,
     pub preconditioner_seconds: f64,
+    /// Whether the Arnoldi steps used the accurate product (the cheap one erred by too much).
+    pub accurate_arnoldi: bool,
 }
 
 /// Call count and accumulated time of one operation.
@@ -109,6 +117,14 @@ struct Schwarz {
     domains: Vec<(Vec<u32>, Vec<f32>)>,
     leaf_sizes: Vec<usize>,
     coarse: Option<CoarseLevel>,
+}
+
+/// The first Arnoldi step, computed while checking the cheap product ([`FastSystem::first_step`]).
+struct FirstStep {
+    z: Vec<f64>,
+    /// `(A - wI) z` by the product the Arnoldi steps use.
+    product: Vec<f64>,
+    accurate_arnoldi: bool,
 }
 
 /// Outcome of an iterative solve.
@@ -191,8 +207,9 @@ impl FastSystem {
         })
     }
 
-    fn breakdown(&self) -> FastBreakdown {
+    fn breakdown(&self, accurate_arnoldi: bool) -> FastBreakdown {
         FastBreakdown {
+            accurate_arnoldi,
             setup_seconds: self.setup_seconds,
             coarse_points: self.precond.coarse.as_ref().map_or(0, |c| c.len()),
             accurate_products: self.accurate.calls(),
@@ -253,11 +270,48 @@ impl FastSystem {
         }
     }
 
+    /// The first Arnoldi step's preconditioned vector `z = M^-1 e` (`e` the initial residual) and its
+    /// product, plus whether the cheap product errs on it by more than
+    /// [`CHEAP_PRODUCT_MAX_ERROR_RATIO`] times the accuracy. Rough data at w = 0 has large, alternating
+    /// coefficients; GMRES on such a product stalls near its error and crawls by restarts, so then every
+    /// Arnoldi step uses the accurate product. `z` solves the system approximately, so it is the kind of
+    /// vector whose product error limits the solve; the check costs one product of the other kind.
+    fn first_step(&self, e: &[f64], accuracy: f64) -> FirstStep {
+        let n = self.len();
+        let mut z = vec![0.0; n];
+        self.precondition(e, &mut z);
+        let mut accurate = vec![0.0; n];
+        self.apply(&z, &mut accurate);
+        let Some((tc, lists)) = &self.inner else {
+            return FirstStep {
+                z,
+                product: accurate,
+                accurate_arnoldi: true,
+            };
+        };
+        let mut cheap = vec![0.0; n];
+        self.inner_counter
+            .time(|| product(tc, lists, self.smoothing, &z, &mut cheap));
+        // NaN-propagating maximum, unlike f64::max.
+        let error = accurate.iter().zip(&cheap).fold(0.0f64, |m, (a, b)| {
+            let d = (a - b).abs();
+            if d.is_nan() || d > m { d } else { m }
+        });
+        // A NaN error (a non-finite product) also selects the accurate product.
+        let accurate_arnoldi = error.is_nan() || error > CHEAP_PRODUCT_MAX_ERROR_RATIO * accuracy;
+        FirstStep {
+            z,
+            product: if accurate_arnoldi { accurate } else { cheap },
+            accurate_arnoldi,
+        }
+    }
+
     /// Solves for input-ordered `values`, stopping when the max residual is below `accuracy`.
     /// `initial` (input order) warm-starts the iteration.
     ///
-    /// Restarted GMRES, right-preconditioned. The Arnoldi products use the cheap inner treecode; the
-    /// residual that decides convergence uses the accurate one. When the GMRES estimate of the rms
+    /// Restarted GMRES, right-preconditioned. The Arnoldi products use the cheap inner treecode where it
+    /// is close enough (see [`FastSystem::first_step`]); the residual that decides
+    /// convergence always uses the accurate one. When the GMRES estimate of the rms
     /// residual reaches the current target, the iterate is formed and its true residual measured
     /// ("peek"): converged -> done; otherwise the rms target is lowered (the max norm lags the rms) and
     /// the same Krylov space is extended, unless the true residual has drifted from the estimate (the
@@ -306,6 +360,8 @@ impl FastSystem {
         let mut check_rms = accuracy * 0.2;
         let mut z = vec![0.0; n];
         let mut w = vec![0.0; n];
+        let mut first = (max_abs > accuracy).then(|| self.first_step(&e, accuracy));
+        let accurate_arnoldi = first.as_ref().is_some_and(|f| f.accurate_arnoldi);
         progress.start("fit: iterations", max_iterations as u64);
         'cycles: while max_abs > accuracy {
             if iterations >= max_iterations {
@@ -322,8 +378,24 @@ impl FastSystem {
             let mut g = vec![beta];
             let mut k = 0;
             loop {
-                self.precondition(&basis[k], &mut z);
-                self.apply_inner(&z, &mut w);
+                if let Some(step) = first.take() {
+                    // basis[0] = e / beta: the check's vector and product, scaled.
+                    for ((zi, wi), (a, b)) in z
+                        .iter_mut()
+                        .zip(w.iter_mut())
+                        .zip(step.z.iter().zip(&step.product))
+                    {
+                        *zi = a / beta;
+                        *wi = b / beta;
+                    }
+                } else {
+                    self.precondition(&basis[k], &mut z);
+                    if accurate_arnoldi {
+                        self.apply(&z, &mut w);
+                    } else {
+                        self.apply_inner(&z, &mut w);
+                    }
+                }
                 self.project(&mut w);
                 let mut col = vec![0.0; k + 2];
                 // Modified Gram-Schmidt, twice for stability with this many vectors.
@@ -410,7 +482,7 @@ impl FastSystem {
             iterations,
             max_residual: max_abs,
             rms_residual,
-            breakdown: self.breakdown(),
+            breakdown: self.breakdown(accurate_arnoldi),
             krylov_vectors: krylov_vectors.max(1),
         })
     }
