@@ -1,4 +1,5 @@
-//! echosurf vs ferreus_rbf 0.2.2 on identical ultrasound-like samples at equal fitting accuracy.
+//! echosurf vs ferreus_rbf 0.2.2 on identical samples (synthetic ultrasound-like ones, or the band pixels of a
+//! PLY given as an argument) at equal fitting accuracy.
 //!
 //! Both fit the linear kernel |x - y| with a linear trend to the same points, stop at the same absolute
 //! fitting accuracy (max |s(x_i) - f_i| in grey levels) and are then checked on those samples with an exact
@@ -15,15 +16,36 @@ use ferreus_rbf::interpolant_config::{
     Drift, FittingAccuracy, FittingAccuracyType, InterpolantSettings, RBFKernelType,
 };
 
+/// Samples for one run: `N` synthetic ultrasound-like samples, or the points and `intensity` of a PLY
+/// (e.g. band pixels from `echosurf-bench`'s `band_pixels` example).
+fn samples(arg: &str) -> Option<(String, Vec<glam::DVec3>, Vec<f64>)> {
+    if arg.ends_with(".ply") {
+        let cloud = match echosurf::io::read_point_cloud(std::path::Path::new(arg)) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("{arg}: {e}");
+                return None;
+            }
+        };
+        let Some((_, intensity)) = cloud.scalars.iter().find(|(name, _)| name == "intensity")
+        else {
+            eprintln!("{arg}: no intensity property");
+            return None;
+        };
+        let values = intensity.iter().map(|&v| f64::from(v)).collect();
+        return Some((arg.to_string(), cloud.positions, values));
+    }
+    let n: usize = arg.parse().ok()?;
+    let (points, values) = ultrasound_like_samples(n, 1);
+    Some((n.to_string(), points, values))
+}
+
 fn main() {
-    let sizes: Vec<usize> = std::env::args()
-        .skip(1)
-        .filter_map(|a| a.parse().ok())
-        .collect();
-    let sizes = if sizes.is_empty() {
-        vec![10_000, 90_000]
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let args = if args.is_empty() {
+        vec!["10000".to_string(), "90000".to_string()]
     } else {
-        sizes
+        args
     };
     let accuracy: f64 = std::env::var("ACC")
         .ok()
@@ -33,8 +55,12 @@ fn main() {
         "{:>9} | {:>12} {:>10} | {:>12} {:>10} | {:>7}",
         "samples", "echosurf s", "max err", "ferreus s", "max err", "speedup"
     );
-    for n in sizes {
-        let (points, values) = ultrasound_like_samples(n, 1);
+    for arg in &args {
+        let Some((label, points, values)) = samples(arg) else {
+            eprintln!("skipping {arg}: neither a sample count nor a readable PLY");
+            continue;
+        };
+        let n = points.len();
         let check: Vec<usize> = (0..n).step_by((n / 2000).max(1)).collect();
         let exact_error = |eval: &dyn Fn(&[glam::DVec3]) -> Vec<f64>| {
             let pts: Vec<glam::DVec3> = check.iter().map(|&i| points[i]).collect();
@@ -86,7 +112,7 @@ fn main() {
             (0..p.len()).map(|i| v[(i, 0)]).collect()
         });
         println!(
-            "{n:>9} | {ours_seconds:>12.2} {ours_error:>10.3} | {theirs_seconds:>12.2} {theirs_error:>10.3} | {:>6.1}x",
+            "{label:>9} | {ours_seconds:>12.2} {ours_error:>10.3} | {theirs_seconds:>12.2} {theirs_error:>10.3} | {:>6.1}x",
             theirs_seconds / ours_seconds
         );
     }
