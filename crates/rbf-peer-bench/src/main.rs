@@ -23,7 +23,8 @@ fn samples(arg: &str) -> Option<(String, Vec<glam::DVec3>, Vec<f64>)> {
         let cloud = match echosurf::io::read_point_cloud(std::path::Path::new(arg)) {
             Ok(c) => c,
             Err(e) => {
-                eprintln!("{arg}: {e}");
+                // echosurf's read errors name the file.
+                eprintln!("{e}");
                 return None;
             }
         };
@@ -35,7 +36,10 @@ fn samples(arg: &str) -> Option<(String, Vec<glam::DVec3>, Vec<f64>)> {
         let values = intensity.iter().map(|&v| f64::from(v)).collect();
         return Some((arg.to_string(), cloud.positions, values));
     }
-    let n: usize = arg.parse().ok()?;
+    let Ok(n) = arg.parse::<usize>() else {
+        eprintln!("{arg}: neither a sample count nor a .ply file");
+        return None;
+    };
     let (points, values) = ultrasound_like_samples(n, 1);
     Some((n.to_string(), points, values))
 }
@@ -56,8 +60,8 @@ fn main() {
         "samples", "echosurf s", "max err", "ferreus s", "max err", "speedup"
     );
     for arg in &args {
+        // `samples` has said why it skips an argument.
         let Some((label, points, values)) = samples(arg) else {
-            eprintln!("skipping {arg}: neither a sample count nor a readable PLY");
             continue;
         };
         let n = points.len();

@@ -391,18 +391,7 @@ fn coarse_level_cuts_iterations_and_the_solve_meets_the_accuracy_exactly() {
     // More than the one product that checks the cheap product's error: the Arnoldi steps used it.
     assert!(!two.breakdown.accurate_arnoldi);
     assert!(two.breakdown.inner_products > 1);
-    let u = basis.matrix(&pts);
-    let r = basis.rank();
-    let worst = (0..pts.len())
-        .map(|i| {
-            let mut s = -w * two.coefficients[i];
-            for (p, l) in pts.iter().zip(&two.coefficients) {
-                s += l * (pts[i] - *p).length();
-            }
-            s += (0..r).map(|k| u[i * r + k] * two.trend[k]).sum::<f64>();
-            (vals[i] - s).abs()
-        })
-        .fold(0.0f64, f64::max);
+    let (worst, _) = dense_residual(&pts, &vals, &two.coefficients, &two.trend, &basis, w);
     assert!(worst <= accuracy + 0.05, "exact max residual {worst}");
 }
 
@@ -435,17 +424,14 @@ fn rough_data_at_w_0_runs_the_arnoldi_steps_on_the_accurate_product() {
     assert!(solution.breakdown.accurate_arnoldi);
     assert_eq!(solution.breakdown.inner_products, 1);
     assert!(solution.breakdown.accurate_products > solution.iterations);
-    let u = basis.matrix(&pts);
-    let r = basis.rank();
-    let worst = (0..pts.len())
-        .map(|i| {
-            let mut s: f64 = (0..r).map(|k| u[i * r + k] * solution.trend[k]).sum();
-            for (p, l) in pts.iter().zip(&solution.coefficients) {
-                s += l * (pts[i] - *p).length();
-            }
-            (vals[i] - s).abs()
-        })
-        .fold(0.0f64, f64::max);
+    let (worst, _) = dense_residual(
+        &pts,
+        &vals,
+        &solution.coefficients,
+        &solution.trend,
+        &basis,
+        0.0,
+    );
     assert!(worst <= accuracy + 0.05, "exact max residual {worst}");
 }
 
