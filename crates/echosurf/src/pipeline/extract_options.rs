@@ -5,6 +5,7 @@ use super::{
     ExtractConfig, FitOptions, InitialBand, IntensityLevels, ReferenceChoice, SegmentOptions,
     SheetOptions, SurfaceOptions, VoxelRouteOptions,
 };
+use crate::segment::crests::CrestOptions;
 
 /// Which route turns the frames into a surface.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -81,6 +82,8 @@ pub struct ExtractOptions {
     pub echo_sheet: SheetOptions,
     /// How the echo-ridge sheet is extended by weaker echoes (`Sheet::EchoRidge` only).
     pub weak_echoes: WeakEchoes,
+    /// How the echo-ridge sheet is extended by the echo crests of the frames (`Sheet::EchoRidge` only).
+    pub image_crests: ImageCrests,
     /// Refuse up front when the estimated memory exceeds this (see [`crate::budget`]); `None`: no check.
     pub memory_budget_bytes: Option<u64>,
 }
@@ -132,6 +135,43 @@ impl WeakEchoes {
         let background = levels?.background as f64;
         (self.level_fraction > 0.0 && level > background)
             .then_some(level - self.level_fraction * (level - background))
+    }
+}
+
+/// The echo-ridge sheet extended by the echo crests found in the frames themselves
+/// ([`crate::segment::crests`]): crests linked to the sheet, crest to crest, are drawn into it
+/// ([`crate::surface::add_linked_crests`]). The fitted field flattens faint echoes where walls turn
+/// from the beam; the frames still show them there. Off by default: on the independent generator it
+/// covers more of the walls with fewer pieces, on echosurf's own simulator it costs accuracy
+/// (docs/decisions/0044-image-crests.md). Never used for bone sweeps, whose band is already the bone
+/// echo of each column.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ImageCrests {
+    /// Extend the ridge sheet by the frames' crests.
+    pub enabled: bool,
+    /// Longest step (mm) from one linked crest to the next.
+    pub link_mm: f64,
+    /// Crests this close (mm) to the sheet start the links; pieces of the redrawn sheet are kept
+    /// where they lie this close to it ([`super::CRESTS_MIN_ANCHORED_SHARE`]).
+    pub seed_mm: f64,
+    /// A crest's normal is that of the plane through the crests within this distance (mm).
+    pub normal_radius_mm: f64,
+    /// Which maxima along the beam are crests.
+    pub crest: CrestOptions,
+}
+
+impl Default for ImageCrests {
+    /// Off; the lengths measured on both generators and the real sweeps in
+    /// docs/decisions/0044-image-crests.md.
+    fn default() -> Self {
+        ImageCrests {
+            enabled: false,
+            link_mm: 0.6,
+            seed_mm: 0.75,
+            normal_radius_mm: 1.2,
+            crest: CrestOptions::default(),
+        }
     }
 }
 

@@ -21,7 +21,7 @@ use crate::segment::{
 };
 use crate::surface::{
     RidgeOptions, SheetOptions, SurfaceDomain, SurfaceOptions, SurfaceStats, WeakRidge,
-    extend_ridge_sheet, extract_surfaces_with_stats, proximal_sheet_on_ridge, sheet_through_points,
+    extract_surfaces_with_stats, proximal_sheet_on_ridge, sheet_through_points,
 };
 use crate::{Error, Result};
 use echo_reach::EchoReach;
@@ -187,6 +187,28 @@ fn extract_from_prepared(
             move_onto_echo_ridges(&mut meshes, &mut sheets, &ridge, options)
         })?;
     }
+    // The frames' echo crests, when a ridge sheet was drawn and the sweep is not bone.
+    let crests = if sheets.iter().any(|s| s.sheet == Sheet::EchoRidge)
+        && !prepared.counts.bone_sweep
+        && options.image_crests.enabled
+    {
+        Some(meter.stage("crests", || {
+            oriented_echo_crests(
+                sequence,
+                &prepared.poses,
+                calibration.and_then(|c| c.clip),
+                options.segment.detect_data_region,
+                &options.image_crests,
+            )
+        })?)
+    } else {
+        None
+    };
+    let extension = crests.as_ref().map(|crests| CrestExtension {
+        crests,
+        domain: &domain,
+        surface_options: &surface_options,
+    });
     meter.stage("pieces", || {
         remove_and_join_pieces(
             &mut meshes,
@@ -194,9 +216,10 @@ fn extract_from_prepared(
             &prepared,
             [sequence.width, sequence.height],
             trust_distance_mm,
+            extension.as_ref(),
             options,
         )
-    });
+    })?;
     for (used, mesh) in sheets.iter().zip(&meshes) {
         if mesh.is_empty() && used.pieces_without_echoes > 0 {
             warnings.push(format!(

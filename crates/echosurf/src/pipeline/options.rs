@@ -8,8 +8,8 @@ use serde::{Deserialize, Serialize};
 
 use super::{
     DEFAULT_BRIDGE_GAP_MM, DEFAULT_ECHO_MARGIN_MM, DEFAULT_MAX_ECHO_DISTANCE_MM,
-    DEFAULT_MIN_ECHO_FRAMES, DEFAULT_SMOOTHING_MM, ExtractOptions, IsoLevels, Method, Sheet,
-    VoxelRouteOptions, WeakEchoes,
+    DEFAULT_MIN_ECHO_FRAMES, DEFAULT_SMOOTHING_MM, ExtractOptions, ImageCrests, IsoLevels, Method,
+    Sheet, VoxelRouteOptions, WeakEchoes,
 };
 use crate::io::ReferenceChoice;
 use crate::rbf::FitOptions;
@@ -111,6 +111,8 @@ pub struct Tuning {
     pub ridge: SheetOptions,
     /// Weaker echoes extending the ridge sheet.
     pub weak_echoes: WeakEchoes,
+    /// The frames' echo crests extending the ridge sheet.
+    pub image_crests: ImageCrests,
     pub cleanup: CleanupTuning,
     /// The voxel route ([`MethodChoice::Voxel`]); its memory budget is `memory_budget_mb`.
     pub voxel: VoxelRouteOptions,
@@ -128,6 +130,7 @@ impl Default for Tuning {
             surface: SurfaceOptions::default(),
             ridge: SheetOptions::default(),
             weak_echoes: WeakEchoes::default(),
+            image_crests: ImageCrests::default(),
             cleanup: CleanupTuning::default(),
             voxel: VoxelRouteOptions::default(),
         }
@@ -324,6 +327,14 @@ impl ExtractConfig {
                 )
             },
         )?;
+        let ic = &t.image_crests;
+        positive_mm("tuning.image_crests.link_mm", ic.link_mm)?;
+        positive_mm("tuning.image_crests.seed_mm", ic.seed_mm)?;
+        positive_mm("tuning.image_crests.normal_radius_mm", ic.normal_radius_mm)?;
+        ic.crest.validate().map_err(|e| OptionError {
+            field: "tuning.image_crests.crest".into(),
+            problem: e.to_string(),
+        })?;
         let c = &t.cleanup;
         non_negative(
             "tuning.cleanup.max_echo_distance_mm",
@@ -390,6 +401,7 @@ impl ExtractConfig {
             sheet: u.sheet,
             echo_sheet: t.ridge.clone(),
             weak_echoes: t.weak_echoes.clone(),
+            image_crests: t.image_crests.clone(),
             memory_budget_bytes: Some(match t.memory_budget_mb {
                 Some(mb) => (mb * 1e6) as u64,
                 None => crate::resources::default_memory_budget_bytes(),

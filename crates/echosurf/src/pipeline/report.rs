@@ -16,6 +16,8 @@ pub struct SheetUsed {
     pub ridge_reached_share: Option<f64>,
     /// The lower level whose ridges extended the ridge sheet ([`WeakEchoes`]); `None`: not extended.
     pub weak_ridge_level: Option<f64>,
+    /// Echo crests of the frames drawn into the ridge sheet ([`ImageCrests`]); 0: none, or not enabled.
+    pub crests_linked: usize,
     /// Farthest a triangle's vertex may lie from an echo (mm; 0: not checked), and the triangles
     /// removed for it ([`Mesh::remove_triangles_not_backed`]).
     pub max_echo_distance_mm: f64,
@@ -43,6 +45,7 @@ impl SheetUsed {
             sheet: Sheet::Iso,
             ridge_reached_share: None,
             weak_ridge_level: None,
+            crests_linked: 0,
             max_echo_distance_mm: 0.0,
             triangles_far_from_echoes: 0,
             min_component_area_mm2: 0.0,

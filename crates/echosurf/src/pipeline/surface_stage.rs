@@ -1,11 +1,18 @@
 //! From a fitted model to the output surfaces: the seeds and region of trust, the echo-ridge sheet,
 //! and removing and joining pieces.
 
+use crate::io::ClipRect;
+use crate::segment::crests::echo_crests;
+use crate::surface::{
+    CrestLink, OrientedPoints, add_linked_crests, keep_pieces_reaching, orient_by_neighbours,
+    ridge_points_extending_sheet,
+};
+
 use super::{
     AUTO_RIDGE_MIN_REACHED_SHARE, Calibration, DVec3, ECHO_SUPPORT_RADIUS_MM, EchoReach, Error,
-    ExtractOptions, FramePlane, IntensityLevels, Mesh, PoseResolution, PreparedSamples, RbfModel,
-    Result, RidgeOptions, SampleSet, Sheet, SheetUsed, SurfaceDomain, SurfaceOptions,
-    TrackedSequence, WeakRidge, clip_corners_px, extend_ridge_sheet, frame_corners,
+    ExtractOptions, FramePlane, ImageCrests, IntensityLevels, Mesh, PoseResolution,
+    PreparedSamples, RbfModel, Result, RidgeOptions, SampleSet, Sheet, SheetUsed, SurfaceDomain,
+    SurfaceOptions, TrackedSequence, WeakRidge, clip_corners_px, frame_corners,
     proximal_sheet_on_ridge, sheet_through_points,
 };
 
@@ -202,6 +209,41 @@ pub(super) struct RidgeInputs<'a> {
     pub(super) bone_sweep: bool,
 }
 
+/// The frames' echo crests with their normals, and where the sheet they extend may go
+/// ([`ImageCrests`]).
+pub(super) struct CrestExtension<'a> {
+    pub(super) crests: &'a OrientedPoints,
+    pub(super) domain: &'a SurfaceDomain,
+    pub(super) surface_options: &'a SurfaceOptions,
+}
+
+/// The echo crests of every placed frame ([`echo_crests`]) in world mm, with the normals of the planes
+/// through their neighbours ([`orient_by_neighbours`]), inside the clip rectangle and, as the
+/// segmentation has it, the frames' data region.
+pub(super) fn oriented_echo_crests(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    clip: Option<ClipRect>,
+    detect_data_region: bool,
+    options: &ImageCrests,
+) -> Result<OrientedPoints> {
+    let frames = echo_crests(sequence, poses, clip, detect_data_region, &options.crest)?;
+    let (mut points, mut beams) = (Vec::new(), Vec::new());
+    for frame in &frames {
+        let m = frame.image_to_world;
+        let beam = m.transform_vector3(DVec3::Y).normalize_or_zero();
+        for &[u, v] in &frame.pixels {
+            points.push(m.transform_point3(DVec3::new(u, v, 0.0)));
+            beams.push(beam);
+        }
+    }
+    Ok(orient_by_neighbours(
+        &points,
+        &beams,
+        options.normal_radius_mm,
+    ))
+}
+
 /// Replaces each level's iso-surface by one sheet on its echoes' ridges, extended by the ridges of the
 /// weaker echoes that continue them (`--sheet ridge`; with `--sheet auto`, only where enough of the
 /// iso-surface's probe side reached a ridge).
@@ -222,13 +264,23 @@ pub(super) fn move_onto_echo_ridges(
         {
             continue;
         }
-        let (mut sheet, _) = sheet_through_points(
-            &ridge.vertices,
-            &ridge.normals,
-            inputs.domain,
-            inputs.surface_options,
-            &options.echo_sheet,
-        )?;
+        let draw = |points: &OrientedPoints| {
+            sheet_through_points(
+                &points.points,
+                &points.normals,
+                inputs.domain,
+                inputs.surface_options,
+                &options.echo_sheet,
+            )
+            .map(|(sheet, _)| sheet)
+        };
+        let ridge_points = OrientedPoints {
+            points: ridge.vertices,
+            normals: ridge.normals,
+        };
+        let mut sheet = draw(&ridge_points)?;
+        // With the weaker echoes, the sheet is drawn again through their ridge points.
+        let mut points = None;
         if let Some(weak_level) = options.weak_echoes.level_below(used.level, inputs.levels) {
             let weak = WeakRidge {
                 strong_level: used.level,
@@ -236,16 +288,19 @@ pub(super) fn move_onto_echo_ridges(
                 reach_mm: options.weak_echoes.reach_mm,
                 min_seed_area_mm2: options.min_component_area_for(Sheet::EchoRidge),
             };
-            sheet = extend_ridge_sheet(
-                sheet,
+            points = Some(ridge_points_extending_sheet(
+                std::mem::take(&mut sheet),
                 inputs.model,
                 &beam,
                 inputs.domain,
                 inputs.surface_options,
                 &options.echo_sheet,
                 &weak,
-            )?;
+            )?);
             used.weak_ridge_level = Some(weak_level);
+        }
+        if let Some(points) = points {
+            sheet = draw(&points)?;
         }
         *mesh = sheet;
         used.sheet = Sheet::EchoRidge;
@@ -254,15 +309,18 @@ pub(super) fn move_onto_echo_ridges(
 }
 
 /// Removes the triangles far from every echo, then small pieces, then pieces too few frames echo, then
-/// joins the pieces left that continue one another across small gaps, then (if asked) trims the rims.
+/// draws each ridge sheet again through its vertices and the frames' echo crests linked to them
+/// (`extension`; small pieces removed once more), then joins the pieces that continue one another across
+/// small gaps, then (if asked) trims the rims.
 pub(super) fn remove_and_join_pieces(
     meshes: &mut [Mesh],
     sheets: &mut [SheetUsed],
     prepared: &PreparedSamples,
     frame_size_px: [usize; 2],
     trust_distance_mm: f64,
+    extension: Option<&CrestExtension>,
     options: &ExtractOptions,
-) {
+) -> Result<()> {
     for (mesh, used) in meshes.iter_mut().zip(sheets) {
         // The ridge sheet only: it claims to lie on echoes. The iso sheet wraps a thick bright
         // structure where the fitted field stays above the level beyond the kept band (the real spine
@@ -300,6 +358,14 @@ pub(super) fn remove_and_join_pieces(
                 used.min_echo_frames,
             );
         }
+        if let Some(extension) = extension.filter(|_| used.sheet == Sheet::EchoRidge) {
+            let (extended, linked) = extend_by_crests(mesh, extension, options)?;
+            used.crests_linked = linked;
+            if linked > 0 {
+                *mesh = extended;
+                mesh.remove_small_components(used.min_component_area_mm2);
+            }
+        }
         // Only pieces that passed both checks are bridged: a crumb next to a wall stays a crumb.
         if options.bridge_gap_mm.is_finite() && options.bridge_gap_mm > 0.0 {
             used.bridge_gap_mm = options.bridge_gap_mm;
@@ -310,6 +376,63 @@ pub(super) fn remove_and_join_pieces(
             used.rim_triangles_trimmed = mesh.trim_rim(options.trim_rim_rings);
         }
     }
+    Ok(())
+}
+
+/// A piece of the ridge sheet drawn again with the frames' crests is kept when at least this share of
+/// its triangles lies near the sheet as it was: it continues that sheet rather than being drawn through
+/// crests alone (measured in docs/decisions/0044-image-crests.md).
+pub const CRESTS_MIN_ANCHORED_SHARE: f64 = 0.5;
+
+/// `mesh` drawn again through its vertices (those of its triangles) and the crests linked to them,
+/// less the pieces that do not continue it ([`CRESTS_MIN_ANCHORED_SHARE`]); the number of crests linked
+/// (0: `mesh` has no normals, or no crest is linked).
+fn extend_by_crests(
+    mesh: &Mesh,
+    extension: &CrestExtension,
+    options: &ExtractOptions,
+) -> Result<(Mesh, usize)> {
+    if mesh.normals.len() != mesh.vertices.len() {
+        return Ok((Mesh::default(), 0));
+    }
+    let mut used = vec![false; mesh.vertices.len()];
+    for t in &mesh.triangles {
+        for &i in t {
+            used[i as usize] = true;
+        }
+    }
+    let (points, normals) = mesh
+        .vertices
+        .iter()
+        .zip(&mesh.normals)
+        .zip(&used)
+        .filter(|(_, u)| **u)
+        .map(|((p, n), _)| (*p, *n))
+        .unzip();
+    let mut points = OrientedPoints { points, normals };
+    let anchors = points.points.clone();
+    let link = CrestLink {
+        seed_mm: options.image_crests.seed_mm,
+        link_mm: options.image_crests.link_mm,
+    };
+    let linked = add_linked_crests(&mut points, extension.crests, link);
+    if linked == 0 {
+        return Ok((Mesh::default(), 0));
+    }
+    let (mut sheet, _) = sheet_through_points(
+        &points.points,
+        &points.normals,
+        extension.domain,
+        extension.surface_options,
+        &options.echo_sheet,
+    )?;
+    keep_pieces_reaching(
+        &mut sheet,
+        &anchors,
+        link.seed_mm,
+        CRESTS_MIN_ANCHORED_SHARE,
+    );
+    Ok((sheet, linked))
 }
 
 /// The kept blocks at or above `level` (positions, and the frame each came from): all of them, not just

@@ -37,7 +37,7 @@ impl TrendBasis {
                 }
             }
         }
-        let (eigenvalues, eigenvectors) = jacobi_eigen(gram);
+        let (eigenvalues, eigenvectors) = crate::small_eigen::jacobi_eigen(gram);
         let largest = eigenvalues.iter().cloned().fold(0.0, f64::max);
         let mut order: Vec<usize> = (0..4).collect();
         order.sort_by(|&a, &b| eigenvalues[b].total_cmp(&eigenvalues[a]));
@@ -97,57 +97,6 @@ impl TrendBasis {
 fn monomials(p: DVec3, origin: DVec3, scale: f64) -> [f64; 4] {
     let q = (p - origin) / scale;
     [1.0, q.x, q.y, q.z]
-}
-
-/// Eigen-decomposition of a symmetric 4x4 matrix by cyclic Jacobi rotations (deterministic, exact enough
-/// for a Gram matrix). Returns eigenvalues and eigenvectors as columns.
-fn jacobi_eigen(mut a: [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {
-    let mut v = [[0.0; 4]; 4];
-    for (i, row) in v.iter_mut().enumerate() {
-        row[i] = 1.0;
-    }
-    for _sweep in 0..64 {
-        let off: f64 = (0..4)
-            .flat_map(|i| (0..4).map(move |j| (i, j)))
-            .filter(|(i, j)| i != j)
-            .map(|(i, j)| a[i][j] * a[i][j])
-            .sum();
-        let diag: f64 = (0..4).map(|i| a[i][i] * a[i][i]).sum();
-        if off <= 1e-30 * diag.max(f64::MIN_POSITIVE) {
-            break;
-        }
-        for p in 0..4 {
-            for q in p + 1..4 {
-                if a[p][q] == 0.0 {
-                    continue;
-                }
-                let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
-                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-                let t = if theta == 0.0 { 1.0 } else { t };
-                let c = 1.0 / (t * t + 1.0).sqrt();
-                let s = t * c;
-                for k in 0..4 {
-                    let akp = a[k][p];
-                    let akq = a[k][q];
-                    a[k][p] = c * akp - s * akq;
-                    a[k][q] = s * akp + c * akq;
-                }
-                for k in 0..4 {
-                    let apk = a[p][k];
-                    let aqk = a[q][k];
-                    a[p][k] = c * apk - s * aqk;
-                    a[q][k] = s * apk + c * aqk;
-                }
-                for row in v.iter_mut() {
-                    let vkp = row[p];
-                    let vkq = row[q];
-                    row[p] = c * vkp - s * vkq;
-                    row[q] = s * vkp + c * vkq;
-                }
-            }
-        }
-    }
-    ([a[0][0], a[1][1], a[2][2], a[3][3]], v)
 }
 
 #[cfg(test)]

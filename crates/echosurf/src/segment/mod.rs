@@ -70,6 +70,7 @@
 //! is a table); rows run in parallel with rayon and all buffers are reused between frames.
 
 pub mod bone;
+pub mod crests;
 mod crop;
 pub mod filters;
 mod init;

@@ -7,6 +7,7 @@
 //! steps along the field gradient, and take normals from the gradient (toward lower values).
 
 mod clustering;
+mod crest;
 mod follow;
 mod lattice;
 mod mc;
@@ -42,7 +43,14 @@ use rayon::prelude::*;
 use crate::mesh::Mesh;
 
 use crate::{Error, Result};
-pub use ridge::{RidgeOptions, RidgeStats, WeakRidge, extend_ridge_sheet, proximal_sheet_on_ridge};
+pub use crest::{
+    CrestLink, OrientedPoints, add_linked_crests, crests_linked_to, keep_pieces_reaching,
+    least_spread_direction, orient_by_neighbours,
+};
+pub use ridge::{
+    RidgeOptions, RidgeStats, WeakRidge, extend_ridge_sheet, proximal_sheet_on_ridge,
+    ridge_points_extending_sheet,
+};
 pub use sheet::{SheetOptions, sheet_through_points};
 
 /// A scalar field the surfacer can sample: values and gradients at many points at once (batches let a

@@ -11,7 +11,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::{
-    ScalarField, SheetOptions, SurfaceDomain, SurfaceOptions, extract_surfaces,
+    OrientedPoints, ScalarField, SheetOptions, SurfaceDomain, SurfaceOptions, extract_surfaces,
     sheet_through_points,
 };
 use crate::Result;
@@ -171,7 +171,7 @@ pub struct WeakRidge {
 /// that touch no strong echo are never traced; its ridges are found wherever the echo's peak passes
 /// the lower level, and the sheet stays on them (the level only decides where a ridge is looked for).
 pub fn extend_ridge_sheet(
-    mut sheet: Mesh,
+    sheet: Mesh,
     field: &dyn ScalarField,
     beam: &(dyn Fn(DVec3) -> Option<DVec3> + Sync),
     domain: &SurfaceDomain,
@@ -179,9 +179,38 @@ pub fn extend_ridge_sheet(
     sheet_options: &SheetOptions,
     weak: &WeakRidge,
 ) -> Result<Mesh> {
+    let points = ridge_points_extending_sheet(
+        sheet,
+        field,
+        beam,
+        domain,
+        surface_options,
+        sheet_options,
+        weak,
+    )?;
+    Ok(sheet_through_points(
+        &points.points,
+        &points.normals,
+        domain,
+        surface_options,
+        sheet_options,
+    )?
+    .0)
+}
+
+/// The points [`extend_ridge_sheet`] draws its sheet through.
+pub fn ridge_points_extending_sheet(
+    mut sheet: Mesh,
+    field: &dyn ScalarField,
+    beam: &(dyn Fn(DVec3) -> Option<DVec3> + Sync),
+    domain: &SurfaceDomain,
+    surface_options: &SurfaceOptions,
+    sheet_options: &SheetOptions,
+    weak: &WeakRidge,
+) -> Result<OrientedPoints> {
     sheet.remove_small_components(weak.min_seed_area_mm2);
     if sheet.is_empty() {
-        return Ok(sheet);
+        return Ok(OrientedPoints::default());
     }
     let weak_domain = SurfaceDomain {
         seeds: sheet.vertices.clone(),
@@ -198,7 +227,7 @@ pub fn extend_ridge_sheet(
         sheet_options.reach_mm,
         weak.reach_mm,
     );
-    Ok(sheet_through_points(&points, &normals, domain, surface_options, sheet_options)?.0)
+    Ok(OrientedPoints { points, normals })
 }
 
 /// The ridge points that extend `sheet` (a sheet drawn through the ridge points of the iso-level

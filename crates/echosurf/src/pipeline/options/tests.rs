@@ -162,6 +162,15 @@ fn each_range_check_names_its_field() {
         ("tuning.weak_echoes.level_fraction", |c| {
             c.tuning.weak_echoes.level_fraction = -0.1
         }),
+        ("tuning.image_crests.link_mm", |c| {
+            c.tuning.image_crests.link_mm = 0.0
+        }),
+        ("tuning.image_crests.normal_radius_mm", |c| {
+            c.tuning.image_crests.normal_radius_mm = f64::NAN
+        }),
+        ("tuning.image_crests.crest", |c| {
+            c.tuning.image_crests.crest.min_contrast_ratio = 0.9
+        }),
         ("tuning.cleanup.max_echo_distance_mm", |c| {
             c.tuning.cleanup.max_echo_distance_mm = -1.0
         }),
