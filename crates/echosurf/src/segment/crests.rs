@@ -181,14 +181,15 @@ pub fn crests_in_image(
     let (span, label) = chain_spans(&crest, w, h);
     let u_of = |i: usize| (i % w) as f64;
     let min_span = options.min_chain_mm / pixel_mm[0];
-    // Per chain, the crests' columns and grey, to compare each with the strongest of its chain nearby.
+    // Per chain and column, the highest crest, to compare each crest with its chain's nearby peak.
     let fraction = options.min_local_peak_fraction as f32;
-    let reach_cols = (LOCAL_PEAK_REACH_MM / pixel_mm[0]).round() as usize;
-    let mut by_chain: std::collections::HashMap<usize, Vec<(usize, f32)>> = Default::default();
+    let reach_cols = (LOCAL_PEAK_REACH_MM / pixel_mm[0]).round() as i64;
+    let mut column_peak: std::collections::HashMap<(usize, usize), f32> = Default::default();
     if fraction > 0.0 {
         for (i, c) in crest.iter().enumerate() {
             if let Some((_, height)) = c {
-                by_chain.entry(label[i]).or_default().push((i % w, *height));
+                let peak = column_peak.entry((label[i], i % w)).or_insert(0.0);
+                *peak = peak.max(*height);
             }
         }
     }
@@ -199,12 +200,11 @@ pub fn crests_in_image(
         .filter_map(|(i, (c, &s))| {
             let (row, height) = (*c)?;
             if fraction > 0.0 {
-                let u = i % w;
-                let peak = by_chain[&label[i]]
-                    .iter()
-                    .filter(|(column, _)| column.abs_diff(u) <= reach_cols)
-                    .map(|&(_, g)| g)
-                    .fold(0.0f32, f32::max);
+                let u = (i % w) as i64;
+                let peak = (u - reach_cols..=u + reach_cols)
+                    .filter(|&c| c >= 0)
+                    .filter_map(|c| column_peak.get(&(label[i], c as usize)))
+                    .fold(0.0f32, |a, &b| a.max(b));
                 if height < fraction * peak {
                     return None;
                 }
