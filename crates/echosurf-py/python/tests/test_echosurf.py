@@ -374,10 +374,13 @@ def test_the_gil_is_released_while_fitting():
 
 def test_ctrl_c_stops_a_run_with_keyboard_interrupt(duck):
     # A child process extracts the duck (tens of seconds) and gets SIGINT once segmentation has
-    # started: it must end in KeyboardInterrupt long before the run could have finished.
+    # started: it must end in KeyboardInterrupt long before the run could have finished. The child
+    # installs Python's own handler: a process started in the background by a non-interactive shell
+    # inherits SIGINT ignored, and Python then leaves it ignored (the run would finish unstopped).
     script = textwrap.dedent(
         """
-        import sys, echosurf
+        import signal, sys, echosurf
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         def progress(stage, fraction):
             print(stage, flush=True)
         try:
