@@ -21,7 +21,7 @@ use crate::segment::{
 };
 use crate::surface::{
     RidgeOptions, SheetOptions, SurfaceDomain, SurfaceOptions, SurfaceStats, WeakRidge,
-    extract_surfaces_with_stats, proximal_sheet_on_ridge, sheet_through_points,
+    extend_ridge_sheet, extract_surfaces_with_stats, proximal_sheet_on_ridge, sheet_through_points,
 };
 use crate::{Error, Result};
 use echo_reach::EchoReach;

@@ -5,14 +5,13 @@ use crate::io::ClipRect;
 use crate::segment::crests::echo_crests;
 use crate::surface::{
     CrestLink, OrientedPoints, add_linked_crests, keep_pieces_reaching, orient_by_neighbours,
-    ridge_points_extending_sheet,
 };
 
 use super::{
     AUTO_RIDGE_MIN_REACHED_SHARE, Calibration, DVec3, ECHO_SUPPORT_RADIUS_MM, EchoReach, Error,
     ExtractOptions, FramePlane, ImageCrests, IntensityLevels, Mesh, PoseResolution,
     PreparedSamples, RbfModel, Result, RidgeOptions, SampleSet, Sheet, SheetUsed, SurfaceDomain,
-    SurfaceOptions, TrackedSequence, WeakRidge, clip_corners_px, frame_corners,
+    SurfaceOptions, TrackedSequence, WeakRidge, clip_corners_px, extend_ridge_sheet, frame_corners,
     proximal_sheet_on_ridge, sheet_through_points,
 };
 
@@ -264,23 +263,13 @@ pub(super) fn move_onto_echo_ridges(
         {
             continue;
         }
-        let draw = |points: &OrientedPoints| {
-            sheet_through_points(
-                &points.points,
-                &points.normals,
-                inputs.domain,
-                inputs.surface_options,
-                &options.echo_sheet,
-            )
-            .map(|(sheet, _)| sheet)
-        };
-        let ridge_points = OrientedPoints {
-            points: ridge.vertices,
-            normals: ridge.normals,
-        };
-        let mut sheet = draw(&ridge_points)?;
-        // With the weaker echoes, the sheet is drawn again through their ridge points.
-        let mut points = None;
+        let (mut sheet, _) = sheet_through_points(
+            &ridge.vertices,
+            &ridge.normals,
+            inputs.domain,
+            inputs.surface_options,
+            &options.echo_sheet,
+        )?;
         if let Some(weak_level) = options.weak_echoes.level_below(used.level, inputs.levels) {
             let weak = WeakRidge {
                 strong_level: used.level,
@@ -288,19 +277,16 @@ pub(super) fn move_onto_echo_ridges(
                 reach_mm: options.weak_echoes.reach_mm,
                 min_seed_area_mm2: options.min_component_area_for(Sheet::EchoRidge),
             };
-            points = Some(ridge_points_extending_sheet(
-                std::mem::take(&mut sheet),
+            sheet = extend_ridge_sheet(
+                sheet,
                 inputs.model,
                 &beam,
                 inputs.domain,
                 inputs.surface_options,
                 &options.echo_sheet,
                 &weak,
-            )?);
+            )?;
             used.weak_ridge_level = Some(weak_level);
-        }
-        if let Some(points) = points {
-            sheet = draw(&points)?;
         }
         *mesh = sheet;
         used.sheet = Sheet::EchoRidge;

@@ -179,11 +179,10 @@ pub fn crests_in_image(
         }
     }
     let (span, label) = chain_spans(&crest, w, h);
-    let u_of = |i: usize| (i % w) as f64;
     let min_span = options.min_chain_mm / pixel_mm[0];
     // Per chain and column, the highest crest, to compare each crest with its chain's nearby peak.
     let fraction = options.min_local_peak_fraction as f32;
-    let reach_cols = (LOCAL_PEAK_REACH_MM / pixel_mm[0]).round() as i64;
+    let reach_cols = (LOCAL_PEAK_REACH_MM / pixel_mm[0]).round() as usize;
     let mut column_peak: std::collections::HashMap<(usize, usize), f32> = Default::default();
     if fraction > 0.0 {
         for (i, c) in crest.iter().enumerate() {
@@ -199,17 +198,19 @@ pub fn crests_in_image(
         .enumerate()
         .filter_map(|(i, (c, &s))| {
             let (row, height) = (*c)?;
+            if (s as f64) < min_span {
+                return None;
+            }
+            let u = i % w;
             if fraction > 0.0 {
-                let u = (i % w) as i64;
-                let peak = (u - reach_cols..=u + reach_cols)
-                    .filter(|&c| c >= 0)
-                    .filter_map(|c| column_peak.get(&(label[i], c as usize)))
+                let peak = (u.saturating_sub(reach_cols)..=u + reach_cols)
+                    .filter_map(|c| column_peak.get(&(label[i], c)))
                     .fold(0.0f32, |a, &b| a.max(b));
                 if height < fraction * peak {
                     return None;
                 }
             }
-            (s as f64 >= min_span).then_some([u_of(i), row])
+            Some([u as f64, row])
         })
         .collect()
 }

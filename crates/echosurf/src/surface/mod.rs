@@ -47,10 +47,7 @@ pub use crest::{
     CrestLink, OrientedPoints, add_linked_crests, crests_linked_to, keep_pieces_reaching,
     least_spread_direction, orient_by_neighbours,
 };
-pub use ridge::{
-    RidgeOptions, RidgeStats, WeakRidge, extend_ridge_sheet, proximal_sheet_on_ridge,
-    ridge_points_extending_sheet,
-};
+pub use ridge::{RidgeOptions, RidgeStats, WeakRidge, extend_ridge_sheet, proximal_sheet_on_ridge};
 pub use sheet::{SheetOptions, sheet_through_points};
 
 /// A scalar field the surfacer can sample: values and gradients at many points at once (batches let a

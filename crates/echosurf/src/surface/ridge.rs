@@ -11,7 +11,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::{
-    OrientedPoints, ScalarField, SheetOptions, SurfaceDomain, SurfaceOptions, extract_surfaces,
+    ScalarField, SheetOptions, SurfaceDomain, SurfaceOptions, extract_surfaces,
     sheet_through_points,
 };
 use crate::Result;
@@ -171,35 +171,6 @@ pub struct WeakRidge {
 /// that touch no strong echo are never traced; its ridges are found wherever the echo's peak passes
 /// the lower level, and the sheet stays on them (the level only decides where a ridge is looked for).
 pub fn extend_ridge_sheet(
-    sheet: Mesh,
-    field: &dyn ScalarField,
-    beam: &(dyn Fn(DVec3) -> Option<DVec3> + Sync),
-    domain: &SurfaceDomain,
-    surface_options: &SurfaceOptions,
-    sheet_options: &SheetOptions,
-    weak: &WeakRidge,
-) -> Result<Mesh> {
-    let points = ridge_points_extending_sheet(
-        sheet,
-        field,
-        beam,
-        domain,
-        surface_options,
-        sheet_options,
-        weak,
-    )?;
-    Ok(sheet_through_points(
-        &points.points,
-        &points.normals,
-        domain,
-        surface_options,
-        sheet_options,
-    )?
-    .0)
-}
-
-/// The points [`extend_ridge_sheet`] draws its sheet through.
-pub fn ridge_points_extending_sheet(
     mut sheet: Mesh,
     field: &dyn ScalarField,
     beam: &(dyn Fn(DVec3) -> Option<DVec3> + Sync),
@@ -207,10 +178,10 @@ pub fn ridge_points_extending_sheet(
     surface_options: &SurfaceOptions,
     sheet_options: &SheetOptions,
     weak: &WeakRidge,
-) -> Result<OrientedPoints> {
+) -> Result<Mesh> {
     sheet.remove_small_components(weak.min_seed_area_mm2);
     if sheet.is_empty() {
-        return Ok(OrientedPoints::default());
+        return Ok(sheet);
     }
     let weak_domain = SurfaceDomain {
         seeds: sheet.vertices.clone(),
@@ -227,7 +198,7 @@ pub fn ridge_points_extending_sheet(
         sheet_options.reach_mm,
         weak.reach_mm,
     );
-    Ok(OrientedPoints { points, normals })
+    Ok(sheet_through_points(&points, &normals, domain, surface_options, sheet_options)?.0)
 }
 
 /// The ridge points that extend `sheet` (a sheet drawn through the ridge points of the iso-level
