@@ -1,5 +1,4 @@
-//! Symmetric eigen-decomposition of small fixed-size matrices: the RBF trend's 4 x 4 Gram matrix and
-//! the 3 x 3 covariance behind the echo crests' normals.
+//! Symmetric eigen-decomposition of small fixed-size matrices (the RBF trend's 4 x 4 Gram matrix).
 
 /// Eigen-decomposition of a symmetric N x N matrix by cyclic Jacobi rotations (deterministic, exact
 /// enough for a Gram or covariance matrix). Returns the eigenvalues and the eigenvectors as columns.
@@ -50,4 +49,44 @@ pub(crate) fn jacobi_eigen<const N: usize>(mut a: [[f64; N]; N]) -> ([f64; N], [
         }
     }
     (std::array::from_fn(|i| a[i][i]), v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// Eigenpairs of random symmetric matrices B B^T against faer's dense self-adjoint solver.
+    fn check<const N: usize>(seed: u64) {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        for _ in 0..200 {
+            let b: [[f64; N]; N] =
+                std::array::from_fn(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0)));
+            let m: [[f64; N]; N] = std::array::from_fn(|i| {
+                std::array::from_fn(|j| (0..N).map(|k| b[i][k] * b[j][k]).sum())
+            });
+            let dense = faer::Mat::<f64>::from_fn(N, N, |i, j| m[i][j]);
+            let eigen = dense.self_adjoint_eigen(faer::Side::Lower).unwrap();
+            let expected = eigen.S().column_vector();
+            let (values, vectors) = jacobi_eigen(m);
+            let mut order: Vec<usize> = (0..N).collect();
+            order.sort_by(|&i, &j| values[i].total_cmp(&values[j]));
+            for (rank, &k) in order.iter().enumerate() {
+                assert!((values[k] - expected[rank]).abs() < 1e-10, "{values:?}");
+                // A distinct eigenvalue's vector agrees up to sign.
+                let distinct = (rank == 0 || expected[rank] - expected[rank - 1] > 1e-6)
+                    && (rank + 1 == N || expected[rank + 1] - expected[rank] > 1e-6);
+                if distinct {
+                    let dot: f64 = (0..N).map(|i| vectors[i][k] * eigen.U()[(i, rank)]).sum();
+                    assert!(dot.abs() > 1.0 - 1e-9, "{dot}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn jacobi_eigenpairs_match_a_dense_eigensolver() {
+        check::<3>(5);
+        check::<4>(6);
+    }
 }

@@ -141,10 +141,9 @@ impl WeakEchoes {
 /// The echo-ridge sheet extended by the echo crests found in the frames themselves
 /// ([`crate::segment::crests`]): crests linked to the sheet, crest to crest, are drawn into it
 /// ([`crate::surface::add_linked_crests`]). The fitted field flattens faint echoes where walls turn
-/// from the beam; the frames still show them there. Off by default: on the independent generator it
-/// covers more of the walls with fewer pieces, on echosurf's own simulator it costs accuracy
-/// (docs/decisions/0044-image-crests.md). Never used for bone sweeps, whose band is already the bone
-/// echo of each column.
+/// from the beam; the frames still show them there. On by default since each crest's normal follows
+/// its chain and links run along the wall (docs/decisions/0045-crest-normals-along-the-chain.md; the
+/// method in 0044). Never used for bone sweeps, whose band is already the bone echo of each column.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ImageCrests {
@@ -155,21 +154,22 @@ pub struct ImageCrests {
     /// Crests this close (mm) to the sheet start the links; pieces of the redrawn sheet are kept
     /// where they lie this close to it ([`super::CRESTS_MIN_ANCHORED_SHARE`]).
     pub seed_mm: f64,
-    /// A crest's normal is that of the plane through the crests within this distance (mm).
+    /// A crest's normal is tilted out of its frame by the other frames' crests within this distance
+    /// (mm); crests with too few crests this near are dropped.
     pub normal_radius_mm: f64,
     /// Which maxima along the beam are crests.
     pub crest: CrestOptions,
 }
 
 impl Default for ImageCrests {
-    /// Off; the lengths measured on both generators and the real sweeps in
-    /// docs/decisions/0044-image-crests.md.
+    /// On; the lengths measured on both generators and the real sweeps in docs/decisions/0044 and
+    /// 0045.
     fn default() -> Self {
         ImageCrests {
-            enabled: false,
+            enabled: true,
             link_mm: 0.6,
             seed_mm: 0.75,
-            normal_radius_mm: 1.2,
+            normal_radius_mm: 2.5,
             crest: CrestOptions::default(),
         }
     }

@@ -4,7 +4,7 @@
 use crate::io::ClipRect;
 use crate::segment::crests::echo_crests;
 use crate::surface::{
-    CrestLink, OrientedPoints, add_linked_crests, keep_pieces_reaching, orient_by_neighbours,
+    CrestLink, OrientedPoints, PlacedCrest, add_linked_crests, keep_pieces_reaching, orient_crests,
 };
 
 use super::{
@@ -216,8 +216,8 @@ pub(super) struct CrestExtension<'a> {
     pub(super) surface_options: &'a SurfaceOptions,
 }
 
-/// The echo crests of every placed frame ([`echo_crests`]) in world mm, with the normals of the planes
-/// through their neighbours ([`orient_by_neighbours`]), inside the clip rectangle and, as the
+/// The echo crests of every placed frame ([`echo_crests`]) in world mm, with normals across their
+/// chains tilted by the neighbouring frames ([`orient_crests`]), inside the clip rectangle and, as the
 /// segmentation has it, the frames' data region.
 pub(super) fn oriented_echo_crests(
     sequence: &TrackedSequence,
@@ -227,20 +227,24 @@ pub(super) fn oriented_echo_crests(
     options: &ImageCrests,
 ) -> Result<OrientedPoints> {
     let frames = echo_crests(sequence, poses, clip, detect_data_region, &options.crest)?;
-    let (mut points, mut beams) = (Vec::new(), Vec::new());
-    for frame in &frames {
+    let mut placed = Vec::new();
+    for (k, frame) in frames.iter().enumerate() {
         let m = frame.image_to_world;
-        let beam = m.transform_vector3(DVec3::Y).normalize_or_zero();
-        for &[u, v] in &frame.pixels {
-            points.push(m.transform_point3(DVec3::new(u, v, 0.0)));
-            beams.push(beam);
+        // One column and one row of the image, in world mm.
+        let (lateral, down) = (m.transform_vector3(DVec3::X), m.transform_vector3(DVec3::Y));
+        let frame_normal = lateral.cross(down).normalize_or_zero();
+        let beam = down.normalize_or_zero();
+        for c in &frame.crests {
+            placed.push(PlacedCrest {
+                point: m.transform_point3(DVec3::new(c.column, c.row, 0.0)),
+                tangent: (lateral + down * c.row_slope).normalize_or_zero(),
+                frame_normal,
+                beam,
+                frame: k as u32,
+            });
         }
     }
-    Ok(orient_by_neighbours(
-        &points,
-        &beams,
-        options.normal_radius_mm,
-    ))
+    Ok(orient_crests(&placed, options.normal_radius_mm))
 }
 
 /// Replaces each level's iso-surface by one sheet on its echoes' ridges, extended by the ridges of the

@@ -94,12 +94,24 @@ pub const LOCAL_PEAK_REACH_MM: f64 = 1.0;
 /// Crests of neighbouring columns chain when their rows are at most this many pixels apart.
 const CHAIN_ROWS: i64 = 2;
 
-/// One frame's crests: sub-pixel (column, row) positions in the full frame.
+/// A crest's chain direction is read over this distance (mm) across the beam on each side.
+pub const TANGENT_REACH_MM: f64 = 0.5;
+
+/// One crest in an image: its sub-pixel position and how its chain runs there.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImageCrest {
+    pub column: f64,
+    pub row: f64,
+    /// The chain's rise in rows per column, over [`TANGENT_REACH_MM`] on each side.
+    pub row_slope: f64,
+}
+
+/// One frame's crests, positions in the full frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameCrests {
     pub frame_index: usize,
     pub image_to_world: DMat4,
-    pub pixels: Vec<[f64; 2]>,
+    pub crests: Vec<ImageCrest>,
 }
 
 /// The echo crests of every placed frame, inside `clip` (the whole frame without one) and, with
@@ -144,9 +156,13 @@ pub fn echo_crests(
             FrameCrests {
                 frame_index: pose.frame_index,
                 image_to_world: m,
-                pixels: crests_in_image(&smoothed, w, h, pixel_mm, options)
+                crests: crests_in_image(&smoothed, w, h, pixel_mm, options)
                     .into_iter()
-                    .map(|[u, v]| [u + u0, v + v0])
+                    .map(|c| ImageCrest {
+                        column: c.column + u0,
+                        row: c.row + v0,
+                        ..c
+                    })
                     .collect(),
             }
         })
@@ -160,7 +176,7 @@ pub fn crests_in_image(
     h: usize,
     pixel_mm: [f64; 2],
     options: &CrestOptions,
-) -> Vec<[f64; 2]> {
+) -> Vec<ImageCrest> {
     let rows = |mm: f64| (mm / pixel_mm[1]).round().max(1.0) as usize;
     let test = CrestTest {
         prominence: options.min_prominence_grey as f32,
@@ -180,15 +196,19 @@ pub fn crests_in_image(
     }
     let (span, label) = chain_spans(&crest, w, h);
     let min_span = options.min_chain_mm / pixel_mm[0];
-    // Per chain and column, the highest crest, to compare each crest with its chain's nearby peak.
+    // Per chain and column, the highest crest (height, row): each crest is compared with its chain's
+    // nearby peak, and its chain's direction is read from them.
     let fraction = options.min_local_peak_fraction as f32;
     let reach_cols = (LOCAL_PEAK_REACH_MM / pixel_mm[0]).round() as usize;
-    let mut column_peak: std::collections::HashMap<(usize, usize), f32> = Default::default();
-    if fraction > 0.0 {
-        for (i, c) in crest.iter().enumerate() {
-            if let Some((_, height)) = c {
-                let peak = column_peak.entry((label[i], i % w)).or_insert(0.0);
-                *peak = peak.max(*height);
+    let tangent_cols = (TANGENT_REACH_MM / pixel_mm[0]).round().max(1.0) as usize;
+    let mut column_peak: std::collections::HashMap<(usize, usize), (f32, f64)> = Default::default();
+    for (i, c) in crest.iter().enumerate() {
+        if let Some((row, height)) = *c {
+            let peak = column_peak
+                .entry((label[i], i % w))
+                .or_insert((height, row));
+            if height > peak.0 {
+                *peak = (height, row);
             }
         }
     }
@@ -205,12 +225,30 @@ pub fn crests_in_image(
             if fraction > 0.0 {
                 let peak = (u.saturating_sub(reach_cols)..=u + reach_cols)
                     .filter_map(|c| column_peak.get(&(label[i], c)))
-                    .fold(0.0f32, |a, &b| a.max(b));
+                    .fold(0.0f32, |a, &(b, _)| a.max(b));
                 if height < fraction * peak {
                     return None;
                 }
             }
-            Some([u as f64, row])
+            // The farthest columns of the chain within reach on each side (this crest where none).
+            let row_at = |c: usize| column_peak.get(&(label[i], c)).map(|&(_, r)| r);
+            let left = (u.saturating_sub(tangent_cols)..u)
+                .find_map(|c| Some((c, row_at(c)?)))
+                .unwrap_or((u, row));
+            let right = (u + 1..=u + tangent_cols)
+                .rev()
+                .find_map(|c| Some((c, row_at(c)?)))
+                .unwrap_or((u, row));
+            let row_slope = if right.0 > left.0 {
+                (right.1 - left.1) / (right.0 - left.0) as f64
+            } else {
+                0.0
+            };
+            Some(ImageCrest {
+                column: u as f64,
+                row,
+                row_slope,
+            })
         })
         .collect()
 }
@@ -343,7 +381,7 @@ mod tests {
             PIXEL_MM,
             &CrestOptions::default(),
         );
-        let on_echo: Vec<_> = crests.iter().filter(|c| c[1] < 50.0).collect();
+        let on_echo: Vec<_> = crests.iter().filter(|c| c.row < 50.0).collect();
         // One crest per column of the echo's 100 (the smoothing spreads its ends by a column or two).
         assert!(
             on_echo.len() >= 98 && on_echo.len() <= 104,
@@ -352,27 +390,57 @@ mod tests {
         );
         for c in &on_echo {
             assert!(
-                (c[1] - echo_row).abs() < 0.1,
+                (c.row - echo_row).abs() < 0.1,
                 "crest at row {} for {echo_row}",
-                c[1]
+                c.row
             );
         }
         // Tissue on both sides: few of its maxima stand out of it by the contrast ratio (those left
         // are for the link to the fitted sheet to reject, `surface::crest`).
-        let in_tissue = crests.iter().filter(|c| c[1] > 62.0).count();
+        let in_tissue = crests.iter().filter(|c| c.row > 62.0).count();
         let no_ratio = CrestOptions {
             min_contrast_ratio: 1.0,
             ..CrestOptions::default()
         };
         let loose = crests_in_image(&frame(echo_row), 120, 100, PIXEL_MM, &no_ratio);
-        let loose_in_tissue = loose.iter().filter(|c| c[1] > 62.0).count();
+        let loose_in_tissue = loose.iter().filter(|c| c.row > 62.0).count();
         eprintln!("tissue crests: {in_tissue} with the ratio test, {loose_in_tissue} without");
         assert!(
             3 * in_tissue < loose_in_tissue,
             "{in_tissue} of {loose_in_tissue}"
         );
         // The echo's crests do not depend on the ratio test: water lies above it.
-        assert_eq!(loose.iter().filter(|c| c[1] < 50.0).count(), on_echo.len());
+        assert_eq!(loose.iter().filter(|c| c.row < 50.0).count(), on_echo.len());
+    }
+
+    #[test]
+    fn a_crest_knows_which_way_its_chain_runs() {
+        // An echo rising 0.4 rows per column (22 degrees from the image's rows): slope 0.4 at every
+        // crest away from the chain's ends; a horizontal echo: 0.
+        let (w, h) = (100, 80);
+        for rise in [0.0, 0.4] {
+            let mut image = vec![15.0f32; w * h];
+            for u in 10..90 {
+                let centre = 20.0 + rise * u as f64;
+                for v in 0..h {
+                    let d = v as f64 - centre;
+                    image[v * w + u] += (70.0 * (-d * d / 2.0).exp()) as f32;
+                }
+            }
+            let crests = crests_in_image(&image, w, h, PIXEL_MM, &CrestOptions::default());
+            let inner: Vec<_> = crests
+                .iter()
+                .filter(|c| (20.0..80.0).contains(&c.column))
+                .collect();
+            assert!(inner.len() >= 55, "{}", inner.len());
+            for c in inner {
+                assert!(
+                    (c.row_slope - rise).abs() < 0.05,
+                    "{} for {rise}",
+                    c.row_slope
+                );
+            }
+        }
     }
 
     #[test]
@@ -420,7 +488,7 @@ mod tests {
             };
             crests_in_image(&image, w, h, PIXEL_MM, &options)
                 .iter()
-                .map(|c| c[0] as usize)
+                .map(|c| c.column as usize)
                 .collect()
         };
         let (all, halved) = (columns(0.0), columns(0.5));

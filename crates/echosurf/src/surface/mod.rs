@@ -44,8 +44,8 @@ use crate::mesh::Mesh;
 
 use crate::{Error, Result};
 pub use crest::{
-    CrestLink, OrientedPoints, add_linked_crests, crests_linked_to, keep_pieces_reaching,
-    least_spread_direction, orient_by_neighbours,
+    CrestLink, LINK_MAX_ACROSS_MM, LINK_MAX_TURN_DEG, OrientedPoints, PlacedCrest,
+    add_linked_crests, keep_pieces_reaching, linked_crest_normals, orient_crests,
 };
 pub use ridge::{RidgeOptions, RidgeStats, WeakRidge, extend_ridge_sheet, proximal_sheet_on_ridge};
 pub use sheet::{SheetOptions, sheet_through_points};
