@@ -213,6 +213,13 @@ impl SweptFacingTruth {
         })
     }
 
+    /// This part of `truth` (the mesh the selection was made of): its selected triangles.
+    pub fn selected(&self, truth: &Mesh) -> Mesh {
+        let mut part = truth.clone();
+        part.retain_triangles(&self.mask);
+        part
+    }
+
     /// How `mesh` covers this part of `truth` (the mesh the selection was made of).
     pub fn score(
         &self,

@@ -120,6 +120,7 @@ fn compare_sequence_options_fail_cleanly() {
         ["--facing", "probe"],
         ["--facing-deg", "20"],
         ["--world", "tracker"],
+        ["--swept-miss-map", "swept.ply"],
     ] {
         let err = run(&extra);
         assert!(err.contains("--sequence"), "{extra:?}: {err}");

@@ -178,6 +178,36 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
         "probe-facing completeness {swept_completeness} (whole truth {completeness})"
     );
     assert!(probe["truth_patches"].as_u64().unwrap() >= 1);
+    // The swept part written as a miss map: fewer vertices than the whole truth, and about as much of
+    // it within 1 mm as the score says (the score weighs by area, the map counts vertices).
+    let swept_map = dir.path().join("swept_miss.ply");
+    let out = echosurf(&[
+        "compare",
+        mesh.to_str().unwrap(),
+        truth.to_str().unwrap(),
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--calibration",
+        config.to_str().unwrap(),
+        "--facing",
+        "probe",
+        "--swept-miss-map",
+        swept_map.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let whole = echosurf::io::read_mesh(&truth).unwrap().vertices.len();
+    let map = echosurf::io::read_point_cloud(&swept_map).unwrap();
+    let distances = map.scalar("distance_mm").unwrap();
+    assert!(!distances.is_empty() && distances.len() < whole);
+    let within = distances.iter().filter(|&&d| d <= 1.0).count() as f64 / distances.len() as f64;
+    assert!(
+        (within - swept_completeness).abs() < 0.15,
+        "{within} of the map's vertices within 1 mm, score {swept_completeness}"
+    );
     // The table lists each patch that is not whole: a triangle far from the sphere misses them all.
     let far = dir.path().join("far.ply");
     echosurf::io::write_mesh(

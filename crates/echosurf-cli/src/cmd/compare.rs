@@ -71,6 +71,10 @@ pub struct Args {
     /// mesh, coloured as --error-map.
     #[arg(long, value_name = "PLY")]
     pub miss_map: Option<PathBuf>,
+    /// With --sequence: write the truth it swept facing its beam (the part that score counts) as a PLY
+    /// map of what the mesh misses, as --miss-map.
+    #[arg(long, value_name = "PLY", requires = "sequence")]
+    pub swept_miss_map: Option<PathBuf>,
     /// Distance (mm) shown red on the maps.
     #[arg(long, default_value_t = 1.0)]
     pub map_scale_mm: f64,
@@ -111,6 +115,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let maps: Vec<Output> = [
         ("--error-map", &args.error_map),
         ("--miss-map", &args.miss_map),
+        ("--swept-miss-map", &args.swept_miss_map),
     ]
     .into_iter()
     .filter_map(|(option, path)| {
@@ -158,6 +163,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     })?;
     // The frame the meshes are in, when a sequence says it (else the frame of whatever made them).
     let mut swept_frame = None;
+    let mut swept_truth = None;
     let swept = match &args.sequence {
         None => None,
         Some(path) => {
@@ -174,7 +180,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 args.facing.into(),
                 args.facing_deg,
             )
-            .and_then(|swept| swept.score(&mesh, &truth, &options))
+            .and_then(|swept| {
+                if args.swept_miss_map.is_some() {
+                    swept_truth = Some(swept.selected(&truth));
+                }
+                swept.score(&mesh, &truth, &options)
+            })
             .with_context(|| format!("scoring the truth swept by {}", path.display()))?;
             Some(score)
         }
@@ -223,10 +234,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         out!("{}", table(&args, &comparison, swept.as_ref()));
     }
     for (path, from, to) in [
-        (&args.error_map, &mesh, &truth),
-        (&args.miss_map, &truth, &mesh),
+        (&args.error_map, Some(&mesh), &truth),
+        (&args.miss_map, Some(&truth), &mesh),
+        (&args.swept_miss_map, swept_truth.as_ref(), &mesh),
     ] {
-        if let Some(path) = path {
+        if let (Some(path), Some(from)) = (path, from) {
             let line = write_distance_map(path, from, to, args.map_scale_mm, args.space.space)?;
             if args.json {
                 eprintln!("{line}");
