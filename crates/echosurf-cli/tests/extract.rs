@@ -145,8 +145,8 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
     // Scored on what the sweep could show (`--sequence`): the truth it swept facing its beam within 30
     // degrees. The cap facing the probe is what a sweep from above images, so it is far more complete
     // than the whole sphere; the side facing the probe is part of the truth facing the beam either way.
-    let swept = |side: &str| {
-        let out = echosurf(&[
+    let swept_with = |side: &str, extra: &[&str]| {
+        let mut args = vec![
             "compare",
             mesh.to_str().unwrap(),
             truth.to_str().unwrap(),
@@ -157,7 +157,9 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
             config.to_str().unwrap(),
             "--facing",
             side,
-        ]);
+        ];
+        args.extend_from_slice(extra);
+        let out = echosurf(&args);
         assert!(
             out.status.success(),
             "{}",
@@ -168,6 +170,7 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
         assert_eq!(v["swept_facing"]["side"], side);
         v["swept_facing"].clone()
     };
+    let swept = |side: &str| swept_with(side, &[]);
     let (either, probe) = (swept("either"), swept("probe"));
     let area = |v: &serde_json::Value| v["truth_area_mm2"].as_f64().unwrap();
     assert!(area(&probe) > 0.0 && area(&probe) <= area(&either));
@@ -181,24 +184,7 @@ fn extract_recovers_the_sphere_cap_and_reports_every_stage() {
     // The swept part written as a miss map: fewer vertices than the whole truth, and about as much of
     // it within 1 mm as the score says (the score weighs by area, the map counts vertices).
     let swept_map = dir.path().join("swept_miss.ply");
-    let out = echosurf(&[
-        "compare",
-        mesh.to_str().unwrap(),
-        truth.to_str().unwrap(),
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--calibration",
-        config.to_str().unwrap(),
-        "--facing",
-        "probe",
-        "--swept-miss-map",
-        swept_map.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    swept_with("probe", &["--swept-miss-map", swept_map.to_str().unwrap()]);
     let whole = echosurf::io::read_mesh(&truth).unwrap().vertices.len();
     let map = echosurf::io::read_point_cloud(&swept_map).unwrap();
     let distances = map.scalar("distance_mm").unwrap();
