@@ -49,7 +49,6 @@ pub mod resources;
 pub mod samples;
 pub mod segment;
 mod serde_forms;
-mod small_eigen;
 pub mod spatial;
 pub mod surface;
 pub mod voxel;

@@ -37,7 +37,7 @@ impl TrendBasis {
                 }
             }
         }
-        let (eigenvalues, eigenvectors) = crate::small_eigen::jacobi_eigen(gram);
+        let (eigenvalues, eigenvectors) = jacobi_eigen(gram);
         let largest = eigenvalues.iter().cloned().fold(0.0, f64::max);
         let mut order: Vec<usize> = (0..4).collect();
         order.sort_by(|&a, &b| eigenvalues[b].total_cmp(&eigenvalues[a]));
@@ -99,9 +99,90 @@ fn monomials(p: DVec3, origin: DVec3, scale: f64) -> [f64; 4] {
     [1.0, q.x, q.y, q.z]
 }
 
+/// Eigen-decomposition of a symmetric 4x4 matrix by cyclic Jacobi rotations (deterministic, exact enough
+/// for a Gram matrix). Returns eigenvalues and eigenvectors as columns.
+fn jacobi_eigen(mut a: [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {
+    let mut v = [[0.0; 4]; 4];
+    for (i, row) in v.iter_mut().enumerate() {
+        row[i] = 1.0;
+    }
+    for _sweep in 0..64 {
+        let off: f64 = (0..4)
+            .flat_map(|i| (0..4).map(move |j| (i, j)))
+            .filter(|(i, j)| i != j)
+            .map(|(i, j)| a[i][j] * a[i][j])
+            .sum();
+        let diag: f64 = (0..4).map(|i| a[i][i] * a[i][i]).sum();
+        if off <= 1e-30 * diag.max(f64::MIN_POSITIVE) {
+            break;
+        }
+        for p in 0..4 {
+            for q in p + 1..4 {
+                if a[p][q] == 0.0 {
+                    continue;
+                }
+                let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for k in 0..4 {
+                    let akp = a[k][p];
+                    let akq = a[k][q];
+                    a[k][p] = c * akp - s * akq;
+                    a[k][q] = s * akp + c * akq;
+                }
+                for k in 0..4 {
+                    let apk = a[p][k];
+                    let aqk = a[q][k];
+                    a[p][k] = c * apk - s * aqk;
+                    a[q][k] = s * apk + c * aqk;
+                }
+                for row in v.iter_mut() {
+                    let vkp = row[p];
+                    let vkq = row[q];
+                    row[p] = c * vkp - s * vkq;
+                    row[q] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    ([a[0][0], a[1][1], a[2][2], a[3][3]], v)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn jacobi_eigenpairs_match_a_dense_eigensolver() {
+        // Random symmetric B B^T against faer's dense self-adjoint solver.
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        for _ in 0..200 {
+            let b: [[f64; 4]; 4] =
+                std::array::from_fn(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0)));
+            let m: [[f64; 4]; 4] = std::array::from_fn(|i| {
+                std::array::from_fn(|j| (0..4).map(|k| b[i][k] * b[j][k]).sum())
+            });
+            let dense = faer::Mat::<f64>::from_fn(4, 4, |i, j| m[i][j]);
+            let eigen = dense.self_adjoint_eigen(faer::Side::Lower).unwrap();
+            let expected = eigen.S().column_vector();
+            let (values, vectors) = jacobi_eigen(m);
+            let mut order: Vec<usize> = (0..4).collect();
+            order.sort_by(|&i, &j| values[i].total_cmp(&values[j]));
+            for (rank, &k) in order.iter().enumerate() {
+                assert!((values[k] - expected[rank]).abs() < 1e-10, "{values:?}");
+                // A distinct eigenvalue's vector agrees up to sign.
+                let distinct = (rank == 0 || expected[rank] - expected[rank - 1] > 1e-6)
+                    && (rank + 1 == 4 || expected[rank + 1] - expected[rank] > 1e-6);
+                if distinct {
+                    let dot: f64 = (0..4).map(|i| vectors[i][k] * eigen.U()[(i, rank)]).sum();
+                    assert!(dot.abs() > 1.0 - 1e-9, "{dot}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn basis_is_orthonormal_and_rank_detects_coplanar_points() {
