@@ -172,7 +172,8 @@ pub struct CrestLink {
 }
 
 /// Adds to `sheet_points` (the oriented points a sheet is drawn through, normals toward the probe) the
-/// crests linked to them, turned as they link ([`linked_crest_normals`]); returns how many. Points without normals take none.
+/// crests linked to them, turned as they link ([`linked_crest_normals`]); returns how many. Points
+/// without normals take none.
 pub fn add_linked_crests(
     sheet_points: &mut OrientedPoints,
     crests: &OrientedPoints,
@@ -208,17 +209,21 @@ pub fn keep_pieces_reaching(
         return removed;
     };
     let components = mesh.triangle_components();
+    // Each vertex looked up once (a vertex is shared by about six triangles).
+    let near_vertex: Vec<bool> = mesh
+        .vertices
+        .par_iter()
+        .map(|&v| near.contains(v))
+        .collect();
     let (mut anchored, mut total) = (
         vec![0usize; components.len()],
         vec![0usize; components.len()],
     );
     for (f, t) in mesh.triangles.iter().enumerate() {
         total[components[f]] += 1;
-        if t.iter().any(|&i| {
-            mesh.vertices
-                .get(i as usize)
-                .is_some_and(|&v| near.contains(v))
-        }) {
+        if t.iter()
+            .any(|&i| near_vertex.get(i as usize).copied().unwrap_or(false))
+        {
             anchored[components[f]] += 1;
         }
     }
