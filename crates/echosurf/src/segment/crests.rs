@@ -1,13 +1,17 @@
-//! Echo crests in the frames themselves: where a wall's echo peaks along the beam.
+//! Echo crests in the frames themselves: where a wall's echo peaks across its line in the image.
 //!
 //! The fitted field flattens faint echoes (smoothing, sample thinning), so on walls that turn away from
 //! the beam its ridges stop where the frames still show the echo (docs/decisions/0044). Here each frame,
-//! lightly smoothed, is searched down its columns (the beam) for maxima that stand out of their own
-//! neighbourhood: `min_prominence_grey` above the lowest grey within [`PROMINENCE_REACH_MM`] on both
-//! sides, and `min_contrast_ratio` times the mean of the darker side over [`DARK_SIDE_MM`]. A wall
-//! echo has dark water, a shadow or a lumen on at least one side; speckle inside tissue has tissue on
-//! both. No global grey level enters. Crests chain across neighbouring columns; chains shorter than
-//! `min_chain_mm` (speckle grains) are dropped.
+//! lightly smoothed, is read across each ridge of its image (the direction of its most negative
+//! curvature, on a copy smoothed a little more; only lines, not spots, and no steeper than
+//! [`MAX_TILT_FROM_BEAM_DEG`]), every sample averaged over [`ALONG_MM`] along the line, for maxima that
+//! stand out of their own neighbourhood: `min_prominence_grey` above the lowest grey within
+//! [`PROMINENCE_REACH_MM`] on both sides, and `min_contrast_ratio` times the mean of the darker side
+//! over [`DARK_SIDE_MM`]. Read down the columns instead, a steep wall's echo is too wide to fall by the
+//! prominence within reach and too faint to rise out of single speckle pixels (docs/decisions/0046).
+//! A wall echo has dark water, a shadow or a lumen on at least one side; speckle inside tissue has
+//! tissue on both. No global grey level enters. Crests chain across neighbouring columns; chains
+//! shorter than `min_chain_mm` (speckle grains) are dropped.
 
 use glam::DMat4;
 use rayon::prelude::*;
@@ -17,7 +21,7 @@ use super::filters::{gaussian_taps, smooth};
 use crate::io::{ClipRect, PoseResolution, TrackedSequence};
 use crate::{Error, Result};
 
-/// Which maxima along the beam count as echo crests ([`echo_crests`]).
+/// Which maxima across an echo line count as echo crests ([`echo_crests`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CrestOptions {
@@ -81,10 +85,10 @@ impl CrestOptions {
     }
 }
 
-/// The prominence is measured within this distance (mm) of the crest along the beam.
+/// The prominence is measured within this distance (mm) of the crest, across its line.
 pub const PROMINENCE_REACH_MM: f64 = 1.0;
 
-/// The darker side's mean is taken over this range of distances (mm) from the crest along the beam:
+/// The darker side's mean is taken over this range of distances (mm) from the crest across its line:
 /// past the echo's own blur, within the wall's neighbourhood.
 pub const DARK_SIDE_MM: [f64; 2] = [0.5, 1.5];
 
@@ -177,25 +181,34 @@ pub fn crests_in_image(
     pixel_mm: [f64; 2],
     options: &CrestOptions,
 ) -> Vec<ImageCrest> {
-    let rows = |mm: f64| (mm / pixel_mm[1]).round().max(1.0) as usize;
+    if image.len() != w * h || w < 5 || h < 5 {
+        return Vec::new();
+    }
+    // One profile step per pixel, but never more than MAX_PROFILE_STEPS over the dark side.
+    let step_mm = pixel_mm[0]
+        .min(pixel_mm[1])
+        .max(DARK_SIDE_MM[1] / MAX_PROFILE_STEPS as f64);
+    let steps = |mm: f64| (mm / step_mm).round().max(1.0) as usize;
     let test = CrestTest {
         prominence: options.min_prominence_grey as f32,
         ratio: options.min_contrast_ratio as f32,
-        reach: rows(PROMINENCE_REACH_MM),
-        dark_from: rows(DARK_SIDE_MM[0]),
-        dark_to: rows(DARK_SIDE_MM[1]),
+        reach: steps(PROMINENCE_REACH_MM),
+        dark_from: steps(DARK_SIDE_MM[0]),
+        dark_to: steps(DARK_SIDE_MM[1]),
+        along: ALONG_OFFSETS.map(|a| a * ALONG_MM / step_mm),
     };
-    if image.len() != w * h || h <= 2 * test.reach {
-        return Vec::new();
-    }
-    let mut crest = vec![None; w * h];
-    for v in test.reach..h - test.reach {
-        for u in 0..w {
-            crest[v * w + u] = test.at(image, w, h, u, v);
-        }
-    }
+    let oriented = orientation_image(image, w, h, pixel_mm);
+    let pixel_steps = |n: [f64; 2]| [n[0] * step_mm / pixel_mm[0], n[1] * step_mm / pixel_mm[1]];
+    let crest: Vec<Option<Crest>> = (0..w * h)
+        .map(|i| {
+            let n = ridge_normal(&oriented, w, h, pixel_mm, [i % w, i / w])?;
+            test.at(image, w, h, [i % w, i / w], pixel_steps(n))
+        })
+        .collect();
     let (span, label) = chain_spans(&crest, w, h);
-    let min_span = options.min_chain_mm / pixel_mm[0];
+    // A chain's ends are spread by the averaging along it: a spot shorter than the shortest chain
+    // must not pass for one.
+    let min_span = (options.min_chain_mm + 2.0 * ALONG_MM) / pixel_mm[0];
     // Per chain and column, the highest crest (height, row): each crest is compared with its chain's
     // nearby peak, and its chain's direction is read from them.
     let fraction = options.min_local_peak_fraction as f32;
@@ -203,12 +216,12 @@ pub fn crests_in_image(
     let tangent_cols = (TANGENT_REACH_MM / pixel_mm[0]).round().max(1.0) as usize;
     let mut column_peak: std::collections::HashMap<(usize, usize), (f32, f64)> = Default::default();
     for (i, c) in crest.iter().enumerate() {
-        if let Some((row, height)) = *c {
+        if let Some(c) = c {
             let peak = column_peak
                 .entry((label[i], i % w))
-                .or_insert((height, row));
-            if height > peak.0 {
-                *peak = (height, row);
+                .or_insert((c.height, c.row));
+            if c.height > peak.0 {
+                *peak = (c.height, c.row);
             }
         }
     }
@@ -217,7 +230,7 @@ pub fn crests_in_image(
         .zip(&span)
         .enumerate()
         .filter_map(|(i, (c, &s))| {
-            let (row, height) = (*c)?;
+            let c = (*c)?;
             if (s as f64) < min_span {
                 return None;
             }
@@ -226,75 +239,251 @@ pub fn crests_in_image(
                 let peak = (u.saturating_sub(reach_cols)..=u + reach_cols)
                     .filter_map(|c| column_peak.get(&(label[i], c)))
                     .fold(0.0f32, |a, &(b, _)| a.max(b));
-                if height < fraction * peak {
+                if c.height < fraction * peak {
                     return None;
                 }
             }
             // The farthest columns of the chain within reach on each side (this crest where none).
-            let row_at = |c: usize| column_peak.get(&(label[i], c)).map(|&(_, r)| r);
+            let row_at = |col: usize| column_peak.get(&(label[i], col)).map(|&(_, r)| r);
             let left = (u.saturating_sub(tangent_cols)..u)
-                .find_map(|c| Some((c, row_at(c)?)))
-                .unwrap_or((u, row));
+                .find_map(|col| Some((col, row_at(col)?)))
+                .unwrap_or((u, c.row));
             let right = (u + 1..=u + tangent_cols)
                 .rev()
-                .find_map(|c| Some((c, row_at(c)?)))
-                .unwrap_or((u, row));
+                .find_map(|col| Some((col, row_at(col)?)))
+                .unwrap_or((u, c.row));
             let row_slope = if right.0 > left.0 {
                 (right.1 - left.1) / (right.0 - left.0) as f64
             } else {
                 0.0
             };
             Some(ImageCrest {
-                column: u as f64,
-                row,
+                column: c.column,
+                row: c.row,
                 row_slope,
             })
         })
         .collect()
 }
 
-/// [`CrestOptions`] in pixels.
+/// The image is smoothed by this much more (mm) before its curvature is read for the direction
+/// across each ridge: the crest test's own smoothing keeps the peak sharp, the direction needs less
+/// speckle.
+pub const ORIENTATION_SMOOTHING_MM: f64 = 0.35;
+
+/// Every profile sample is the mean of the image at these offsets along the ridge, in units of
+/// [`ALONG_MM`]: a faint echo adds up along its line, speckle does not.
+const ALONG_OFFSETS: [f64; 5] = [-1.0, -0.5, 0.0, 0.5, 1.0];
+
+/// Half the length (mm) along the ridge over which each profile sample is averaged.
+pub const ALONG_MM: f64 = 0.4;
+
+/// The most profile steps on each side of a crest (the dark side's far end).
+const MAX_PROFILE_STEPS: usize = 16;
+
+/// The steepest echo line searched for: its normal at most this far (degrees) from the beam (the
+/// image's columns).
+pub const MAX_TILT_FROM_BEAM_DEG: f64 = 65.0;
+
+/// The most a ridge may curve down along itself, as a share of how much it curves down across.
+const MAX_CURVATURE_ALONG: f64 = 0.3;
+
+/// A pixel is tested for a crest only where the smoothed ridge's top lies within this many pixels
+/// of it across the ridge: the full test is costly and cannot pass farther away.
+const CREST_NEAR_PX: f64 = 1.0;
+
+/// The image smoothed by [`ORIENTATION_SMOOTHING_MM`] more, for [`ridge_normal`].
+fn orientation_image(image: &[f32], w: usize, h: usize, pixel_mm: [f64; 2]) -> Vec<f32> {
+    let (mut tmp, mut smoothed) = (Vec::new(), Vec::new());
+    let sigma_px = ORIENTATION_SMOOTHING_MM / pixel_mm[0].min(pixel_mm[1]);
+    smooth(
+        image,
+        w,
+        h,
+        &gaussian_taps(sigma_px),
+        &mut tmp,
+        &mut smoothed,
+    );
+    smoothed
+}
+
+/// The unit direction (mm, x along the rows, y down the columns) across the ridge through pixel
+/// `[u, v]` of `smoothed` ([`orientation_image`]): the eigenvector of its most negative curvature.
+/// `None` where it is no ridge (it curves up in every direction, or down along itself by more than
+/// [`MAX_CURVATURE_ALONG`] of across) or where the ridge's top
+/// lies farther than [`CREST_NEAR_PX`] away across it.
+fn ridge_normal(
+    smoothed: &[f32],
+    w: usize,
+    h: usize,
+    pixel_mm: [f64; 2],
+    [u, v]: [usize; 2],
+) -> Option<[f64; 2]> {
+    // The border replicated, as the smoothing does.
+    let interior = u >= 2 && v >= 2 && u + 2 < w && v + 2 < h;
+    let at = |du: isize, dv: isize| {
+        let (x, y) = (u as isize + du, v as isize + dv);
+        let (x, y) = if interior {
+            (x as usize, y as usize)
+        } else {
+            (
+                x.clamp(0, w as isize - 1) as usize,
+                y.clamp(0, h as isize - 1) as usize,
+            )
+        };
+        smoothed[y * w + x] as f64
+    };
+    let (dx, dy) = (2.0 * pixel_mm[0], 2.0 * pixel_mm[1]);
+    let centre = at(0, 0);
+    // Second differences two pixels wide: the curvature of the ridge, not of its speckle.
+    let xx = (at(2, 0) - 2.0 * centre + at(-2, 0)) / (dx * dx);
+    let yy = (at(0, 2) - 2.0 * centre + at(0, -2)) / (dy * dy);
+    let xy = (at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1)) / (dx * dy);
+    let half_trace = 0.5 * (xx + yy);
+    let root = (half_trace * half_trace - (xx * yy - xy * xy))
+        .max(0.0)
+        .sqrt();
+    let (lowest, along) = (half_trace - root, half_trace + root);
+    // A ridge curves down across itself far more than along: a spot, a grain of speckle or the
+    // rounded end of an echo curves down alike every way, and has no direction to read across.
+    if lowest >= 0.0 || along < MAX_CURVATURE_ALONG * lowest {
+        return None;
+    }
+    // (xy, lowest - xx) and (lowest - yy, xy) both lie across the ridge; take the longer.
+    let square = |x: [f64; 2]| x[0] * x[0] + x[1] * x[1];
+    let (a, b) = ([xy, lowest - xx], [lowest - yy, xy]);
+    let pick = if square(a) >= square(b) { a } else { b };
+    let length = square(pick).sqrt();
+    let n = if length > 0.0 && length.is_finite() {
+        [pick[0] / length, pick[1] / length]
+    } else {
+        [0.0, 1.0]
+    };
+    // A line this steep in the frame is a wall almost along the beam: it sends no echo back, and
+    // what looks like one is the lateral blur of an echo's end.
+    if n[1].abs() < MAX_TILT_FROM_BEAM_DEG.to_radians().cos() {
+        return None;
+    }
+    // The ridge's top lies where the slope over the curvature puts it (a parabola's vertex).
+    let slope = (at(1, 0) - at(-1, 0)) / dx * n[0] + (at(0, 1) - at(0, -1)) / dy * n[1];
+    let px = square([n[0] * pixel_mm[0], n[1] * pixel_mm[1]]).sqrt();
+    if slope.abs() > CREST_NEAR_PX * px * -lowest {
+        return None;
+    }
+    Some(n)
+}
+
+/// A crest found at one pixel: its sub-pixel position and its height over its darker side.
+#[derive(Debug, Clone, Copy)]
+struct Crest {
+    column: f64,
+    row: f64,
+    height: f32,
+}
+
+/// [`CrestOptions`] in profile steps (the smaller pixel side).
 struct CrestTest {
     prominence: f32,
     ratio: f32,
     reach: usize,
     dark_from: usize,
     dark_to: usize,
+    /// Offsets along the ridge (steps) averaged into every profile sample.
+    along: [f64; 5],
 }
 
 impl CrestTest {
-    /// The crest at column `u`, row `v` (`reach <= v < h - reach`), if any: its row refined by the
-    /// parabola through the three samples around the maximum, and its height over the darker side.
-    fn at(&self, image: &[f32], w: usize, h: usize, u: usize, v: usize) -> Option<(f64, f32)> {
-        let grey = |row: usize| image[row * w + u];
-        let s = grey(v);
-        if s <= grey(v - 1) || s < grey(v + 1) {
-            return None;
-        }
-        let lowest =
-            |rows: std::ops::RangeInclusive<usize>| rows.map(grey).fold(f32::MAX, f32::min);
-        let higher_side_min = lowest(v - self.reach..=v - 1).max(lowest(v + 1..=v + self.reach));
-        if s - higher_side_min < self.prominence {
-            return None;
-        }
-        let mean = |rows: std::ops::RangeInclusive<usize>| {
-            let n = rows.clone().count().max(1) as f32;
-            rows.map(grey).sum::<f32>() / n
+    /// The crest at pixel `[u, v]` if the image, read across its ridge (`step`: one profile step in
+    /// pixels, across the ridge), peaks there and stands out of its neighbourhood: its position refined
+    /// by the parabola through the three samples around the maximum, and its height over the darker
+    /// side.
+    fn at(
+        &self,
+        image: &[f32],
+        w: usize,
+        h: usize,
+        pixel: [usize; 2],
+        step: [f64; 2],
+    ) -> Option<Crest> {
+        let (u, v) = (pixel[0] as f64, pixel[1] as f64);
+        let across = [-step[1], step[0]];
+        // The frame's border is replicated, as the smoothing does.
+        let (last_x, last_y) = ((w - 1) as f64, (h - 1) as f64);
+        let spread = self.along[self.along.len() - 1];
+        let extent = |k: usize| self.dark_to as f64 * step[k].abs() + spread * across[k].abs();
+        let interior =
+            u >= extent(0) && v >= extent(1) && u + extent(0) <= last_x && v + extent(1) <= last_y;
+        let clamp = |x: f64, y: f64| {
+            if interior {
+                (x, y)
+            } else {
+                (x.clamp(0.0, last_x), y.clamp(0.0, last_y))
+            }
         };
-        let above = mean(v.saturating_sub(self.dark_to)..=v.saturating_sub(self.dark_from));
-        let below = mean((v + self.dark_from).min(h - 1)..=(v + self.dark_to).min(h - 1));
-        let dark = above.min(below);
+        let bilinear = |x: f64, y: f64| -> f32 {
+            let (x, y) = clamp(x, y);
+            let (i, j) = (x as usize, y as usize);
+            let (fx, fy) = ((x - i as f64) as f32, (y - j as f64) as f32);
+            let (i1, j1) = ((i + 1).min(w - 1), (j + 1).min(h - 1));
+            let g = |a: usize, b: usize| image[b * w + a];
+            (g(i, j) * (1.0 - fx) + g(i1, j) * fx) * (1.0 - fy)
+                + (g(i, j1) * (1.0 - fx) + g(i1, j1) * fx) * fy
+        };
+        let nearest = |x: f64, y: f64| {
+            let (x, y) = clamp(x, y);
+            image[(y + 0.5) as usize * w + (x + 0.5) as usize]
+        };
+        let (along, count) = (&self.along, self.along.len() as f32);
+        let peak = |t: i64| -> f32 {
+            let (x, y) = (u + t as f64 * step[0], v + t as f64 * step[1]);
+            along
+                .iter()
+                .map(|&a| bilinear(x + a * across[0], y + a * across[1]))
+                .sum::<f32>()
+                / count
+        };
+        // The peak and its neighbours interpolated (they place the crest), the sides to the nearest
+        // pixel (they only weigh it).
+        let side = |t: i64| -> f32 {
+            let (x, y) = (u + t as f64 * step[0], v + t as f64 * step[1]);
+            along
+                .iter()
+                .map(|&a| nearest(x + a * across[0], y + a * across[1]))
+                .sum::<f32>()
+                / count
+        };
+        let (before, s, after) = (peak(-1), peak(0), peak(1));
+        if s <= before || s < after {
+            return None;
+        }
+        // Both sides fall by the prominence within reach.
+        let reach = self.reach as i64;
+        let falls = |sign: i64, first: f32| {
+            first <= s - self.prominence
+                || (2..=reach).any(|t| side(sign * t) <= s - self.prominence)
+        };
+        if !falls(-1, before) || !falls(1, after) {
+            return None;
+        }
+        let (from, to) = (self.dark_from as i64, self.dark_to as i64);
+        let n = (to - from + 1) as f32;
+        let mean = |sign: i64| (from..=to).map(|t| side(sign * t)).sum::<f32>() / n;
+        let dark = mean(-1).min(mean(1));
         if s < self.ratio * dark {
             return None;
         }
-        let (a, b, c) = (grey(v - 1) as f64, s as f64, grey(v + 1) as f64);
+        let (a, b, c) = (before as f64, s as f64, after as f64);
         let curvature = a - 2.0 * b + c;
         let offset = if curvature < 0.0 {
             (0.5 * (a - c) / curvature).clamp(-0.5, 0.5)
         } else {
             0.0
         };
-        Some((v as f64 + offset, s - dark))
+        Some(Crest {
+            column: u + offset * step[0],
+            row: v + offset * step[1],
+            height: s - dark,
+        })
     }
 }
 
@@ -382,17 +571,24 @@ mod tests {
             &CrestOptions::default(),
         );
         let on_echo: Vec<_> = crests.iter().filter(|c| c.row < 50.0).collect();
-        // One crest per column of the echo's 100 (the smoothing spreads its ends by a column or two).
+        // One crest per column of the echo's 100, give or take its abrupt ends: there the smoothing
+        // and the averaging along the echo (ALONG_MM) spread it, and its curvature turns along it
+        // (MAX_CURVATURE_ALONG), by up to four columns.
         assert!(
-            on_echo.len() >= 98 && on_echo.len() <= 104,
+            on_echo.len() >= 92 && on_echo.len() <= 106,
             "{}",
             on_echo.len()
         );
+        // On its peak; within the averaging's reach of the abrupt ends the direction across the
+        // echo turns, and the crest may sit up to a pixel and a half off.
         for c in &on_echo {
+            let off = (c.row - echo_row).abs();
+            let inside = (12.0..=107.0).contains(&c.column);
             assert!(
-                (c.row - echo_row).abs() < 0.1,
-                "crest at row {} for {echo_row}",
-                c.row
+                off < if inside { 0.1 } else { 1.5 },
+                "crest at row {} column {} for {echo_row}",
+                c.row,
+                c.column
             );
         }
         // Tissue on both sides: few of its maxima stand out of it by the contrast ratio (those left
@@ -405,8 +601,10 @@ mod tests {
         let loose = crests_in_image(&frame(echo_row), 120, 100, PIXEL_MM, &no_ratio);
         let loose_in_tissue = loose.iter().filter(|c| c.row > 62.0).count();
         eprintln!("tissue crests: {in_tissue} with the ratio test, {loose_in_tissue} without");
+        // Most of the tissue's ridges fail the ratio test, and those left are under 2 % of its
+        // 37 x 120 pixels.
         assert!(
-            3 * in_tissue < loose_in_tissue,
+            2 * in_tissue < loose_in_tissue && in_tissue * 50 < 37 * 120,
             "{in_tissue} of {loose_in_tissue}"
         );
         // The echo's crests do not depend on the ratio test: water lies above it.
@@ -445,7 +643,7 @@ mod tests {
 
     #[test]
     fn short_chains_are_dropped_and_a_dark_frame_has_no_crests() {
-        // A bright spot 3 px wide: a chain of 0.4 mm, under the 1 mm of the default.
+        // A bright spot 3 px wide: 0.6 mm, under the 1 mm of the default.
         let (w, h) = (60, 60);
         let mut image = vec![15.0f32; w * h];
         for u in 30..33 {
@@ -459,7 +657,21 @@ mod tests {
             min_chain_mm: 0.3,
             ..options.clone()
         };
-        assert_eq!(crests_in_image(&image, w, h, PIXEL_MM, &short).len(), 3);
+        // Nor is it found once short chains are allowed: a spot curves down alike every way, it is
+        // no ridge (MAX_CURVATURE_ALONG). A dash 4 mm long is.
+        assert!(crests_in_image(&image, w, h, PIXEL_MM, &short).is_empty());
+        let mut dash = vec![15.0f32; w * h];
+        for u in 20..40 {
+            dash[30 * w + u] = 90.0;
+            dash[29 * w + u] = 50.0;
+            dash[31 * w + u] = 50.0;
+        }
+        let found = crests_in_image(&dash, w, h, PIXEL_MM, &short);
+        assert!(found.len() >= 8, "{found:?}");
+        assert!(
+            found.iter().all(|c| (c.row - 30.0).abs() < 0.2),
+            "{found:?}"
+        );
         assert!(crests_in_image(&vec![15.0; w * h], w, h, PIXEL_MM, &options).is_empty());
         // Wrong sizes give nothing rather than a panic.
         assert!(crests_in_image(&image, w, h + 1, PIXEL_MM, &options).is_empty());
@@ -509,6 +721,73 @@ mod tests {
             "{} {}",
             last(&halved),
             last(&all)
+        );
+    }
+
+    #[test]
+    fn a_faint_steep_echo_is_found_across_its_line_not_down_the_column() {
+        // An echo line 55 degrees from the image's rows (a wall turned away from the beam), 16 grey
+        // over a water background of 15 with speckle of +-8 grey, profile sigma 0.3 mm across the line.
+        // Down a column its profile is 1.7 times as wide, and falls by less than the prominence within
+        // PROMINENCE_REACH_MM; across the line it is found on almost every row.
+        let (w, h) = (120, 120);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let angle = 55f64.to_radians();
+        let normal = [-angle.sin(), angle.cos()];
+        let mut image = vec![0.0f32; w * h];
+        for v in 0..h {
+            for u in 0..w {
+                let across_mm =
+                    ((u as f64 - 60.0) * normal[0] + (v as f64 - 60.0) * normal[1]) * PIXEL_MM[0];
+                let echo = 16.0 * (-across_mm * across_mm / (2.0 * 0.09)).exp();
+                image[v * w + u] = (15.0 + echo + rng.random_range(-8.0..8.0)) as f32;
+            }
+        }
+        let (mut tmp, mut smoothed) = (Vec::new(), Vec::new());
+        smooth(&image, w, h, &gaussian_taps(1.0), &mut tmp, &mut smoothed);
+        let options = CrestOptions {
+            min_prominence_grey: 8.0,
+            ..CrestOptions::default()
+        };
+        let crests = crests_in_image(&smoothed, w, h, PIXEL_MM, &options);
+        let on_line = |c: &&ImageCrest| {
+            ((c.column - 60.0) * normal[0] + (c.row - 60.0) * normal[1]).abs() < 1.0
+        };
+        let found = crests.iter().filter(on_line).count();
+        let rows: std::collections::BTreeSet<i64> = crests
+            .iter()
+            .filter(on_line)
+            .map(|c| c.row.round() as i64)
+            .collect();
+        // The line crosses rows 10-109 inside the image (away from the border).
+        assert!(
+            rows.len() >= 80,
+            "{} rows of 100, {found} crests",
+            rows.len()
+        );
+        // Speckle gives few crests off the line.
+        let off_line = crests.len() - found;
+        assert!(
+            off_line * 5 < found,
+            "{off_line} off the line, {found} on it"
+        );
+        // The column search this replaced: the same image and options, profiles read down the
+        // columns without the averaging along the line.
+        let column_test = CrestTest {
+            prominence: 8.0,
+            ratio: options.min_contrast_ratio as f32,
+            reach: 5,
+            dark_from: 3,
+            dark_to: 8,
+            along: [0.0; 5],
+        };
+        let down_columns = (0..w * h)
+            .filter_map(|i| column_test.at(&smoothed, w, h, [i % w, i / w], [0.0, 1.0]))
+            .filter(|c| ((c.column - 60.0) * normal[0] + (c.row - 60.0) * normal[1]).abs() < 1.0)
+            .count();
+        assert!(
+            2 * down_columns < found,
+            "{down_columns} down the columns, {found} across"
         );
     }
 
