@@ -393,6 +393,21 @@ struct CrestTest {
 }
 
 impl CrestTest {
+    /// The mean of `read` at the offsets [`CrestTest::along`] from `centre` in direction `along_line`.
+    fn mean_along(
+        &self,
+        centre: [f64; 2],
+        along_line: [f64; 2],
+        read: impl Fn(f64, f64) -> f32,
+    ) -> f32 {
+        let sum: f32 = self
+            .along
+            .iter()
+            .map(|&a| read(centre[0] + a * along_line[0], centre[1] + a * along_line[1]))
+            .sum();
+        sum / self.along.len() as f32
+    }
+
     /// The crest at pixel `[u, v]` if the image, read across its ridge (`step`: one profile step in
     /// pixels, across the ridge), peaks there and stands out of its neighbourhood: its position refined
     /// by the parabola through the three samples around the maximum, and its height over the darker
@@ -433,25 +448,11 @@ impl CrestTest {
             let (x, y) = clamp(x, y);
             image[(y + 0.5) as usize * w + (x + 0.5) as usize]
         };
-        let (along, count) = (&self.along, self.along.len() as f32);
-        let peak = |t: i64| -> f32 {
-            let (x, y) = (u + t as f64 * step[0], v + t as f64 * step[1]);
-            along
-                .iter()
-                .map(|&a| bilinear(x + a * across[0], y + a * across[1]))
-                .sum::<f32>()
-                / count
-        };
+        let at = |t: i64| [u + t as f64 * step[0], v + t as f64 * step[1]];
         // The peak and its neighbours interpolated (they place the crest), the sides to the nearest
         // pixel (they only weigh it).
-        let side = |t: i64| -> f32 {
-            let (x, y) = (u + t as f64 * step[0], v + t as f64 * step[1]);
-            along
-                .iter()
-                .map(|&a| nearest(x + a * across[0], y + a * across[1]))
-                .sum::<f32>()
-                / count
-        };
+        let peak = |t: i64| self.mean_along(at(t), across, bilinear);
+        let side = |t: i64| self.mean_along(at(t), across, nearest);
         let (before, s, after) = (peak(-1), peak(0), peak(1));
         if s <= before || s < after {
             return None;
