@@ -442,6 +442,14 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
             if n == 1 { "" } else { "s" }
         ),
     };
+    let minor = match used.minor_pieces_removed {
+        0 => String::new(),
+        n => format!(
+            ", {n} piece{} under {} % of the largest removed",
+            if n == 1 { "" } else { "s" },
+            100.0 * used.min_piece_share_of_largest
+        ),
+    };
     let trimmed = match used.rim_triangles_trimmed {
         0 => String::new(),
         n => format!(
@@ -451,7 +459,7 @@ pub(crate) fn describe_sheet(used: &echosurf::pipeline::SheetUsed, asked: Sheet)
             if used.trim_rim_rings == 1 { "" } else { "s" }
         ),
     };
-    why + &weak + &far + &unbacked + &bridged + &trimmed
+    why + &weak + &far + &unbacked + &bridged + &minor + &trimmed
 }
 
 /// A tracked sequence given to score or draw a mesh against (`compare --sequence`, `render

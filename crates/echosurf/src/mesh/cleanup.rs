@@ -8,6 +8,27 @@ impl Mesh {
     /// Removes the edge-connected components whose area is below `min_area_mm2` (isolated speckle blobs
     /// and shreds of a surface) and the vertices no triangle uses any more. Returns the triangles removed.
     pub fn remove_small_components(&mut self, min_area_mm2: f64) -> usize {
+        self.remove_components_below(min_area_mm2, 0.0).1
+    }
+
+    /// Removes the components smaller than `min_area_mm2` or than `min_share_of_largest` of the largest
+    /// component's area, as [`Mesh::remove_small_components`]: specks far smaller than the structure
+    /// the mesh shows, whatever its size. Returns the pieces removed.
+    pub fn remove_minor_components(
+        &mut self,
+        min_area_mm2: f64,
+        min_share_of_largest: f64,
+    ) -> usize {
+        self.remove_components_below(min_area_mm2, min_share_of_largest)
+            .0
+    }
+
+    /// (pieces, triangles) removed by [`Mesh::remove_minor_components`].
+    fn remove_components_below(
+        &mut self,
+        min_area_mm2: f64,
+        min_share_of_largest: f64,
+    ) -> (usize, usize) {
         let n = self.vertices.len();
         let component = self.triangle_components();
         let mut component_area = vec![0.0f64; self.triangles.len()];
@@ -17,10 +38,19 @@ impl Mesh {
                 component_area[component[f]] += self.triangle_area_mm2(*t);
             }
         }
+        let largest = component_area.iter().fold(0.0f64, |a, &b| a.max(b));
+        let min_area_mm2 = min_area_mm2.max(min_share_of_largest * largest);
         let keep: Vec<bool> = (0..self.triangles.len())
             .map(|f| valid(&self.triangles[f]) && component_area[component[f]] >= min_area_mm2)
             .collect();
-        self.retain_triangles(&keep)
+        let mut removed_piece = vec![false; self.triangles.len()];
+        for (f, &k) in keep.iter().enumerate() {
+            if !k {
+                removed_piece[component[f]] = true;
+            }
+        }
+        let pieces = removed_piece.iter().filter(|&&r| r).count();
+        (pieces, self.retain_triangles(&keep))
     }
 
     /// Closes every hole whose boundary loop is at most `max_perimeter_mm` long with a fan of triangles

@@ -1,4 +1,47 @@
 #[test]
+fn pieces_far_smaller_than_the_largest_are_removed_at_any_scale() {
+    // A square of side `k` (area k^2) and two right triangles apart from it, of areas 0.004 and 0.006
+    // times the square's: under half a percent of the largest piece goes, whatever the scale; an
+    // absolute smallest area still applies on top.
+    let mesh = |k: f64| {
+        let leg = |share: f64| (2.0 * share).sqrt() * k;
+        let (a, b) = (leg(0.004), leg(0.006));
+        Mesh {
+            vertices: vec![
+                DVec3::ZERO,
+                DVec3::X * k,
+                DVec3::new(k, k, 0.0),
+                DVec3::Y * k,
+                DVec3::new(3.0 * k, 0.0, 0.0),
+                DVec3::new(3.0 * k + a, 0.0, 0.0),
+                DVec3::new(3.0 * k, a, 0.0),
+                DVec3::new(5.0 * k, 0.0, 0.0),
+                DVec3::new(5.0 * k + b, 0.0, 0.0),
+                DVec3::new(5.0 * k, b, 0.0),
+            ],
+            normals: vec![DVec3::Z; 10],
+            triangles: vec![[0, 1, 2], [0, 2, 3], [4, 5, 6], [7, 8, 9]],
+        }
+    };
+    for k in [0.1, 1.0, 30.0] {
+        let mut m = mesh(k);
+        assert_eq!(m.remove_minor_components(0.0, 0.005), 1, "side {k}");
+        assert_eq!(m.triangles.len(), 3);
+        assert_eq!(m.topology().components, 2);
+        // The share alone equals the absolute area it stands for.
+        let mut absolute = mesh(k);
+        absolute.remove_small_components(0.005 * k * k);
+        assert_eq!(absolute, m);
+    }
+    // Share 0 is the absolute rule; the larger of the two thresholds wins.
+    let mut m = mesh(1.0);
+    assert_eq!(m.remove_minor_components(0.0, 0.0), 0);
+    assert_eq!(m.remove_minor_components(0.01, 0.005), 2);
+    assert_eq!(m.topology().components, 1);
+    assert_eq!(Mesh::default().remove_minor_components(1.0, 0.5), 0);
+}
+
+#[test]
 fn small_components_are_removed_with_their_vertices() {
     // A unit square (two triangles, area 1) and a small triangle (area 0.005) apart from it.
     let mut mesh = Mesh {

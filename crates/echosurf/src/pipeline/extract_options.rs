@@ -101,6 +101,16 @@ impl ExtractOptions {
         self.min_component_area_mm2
             .unwrap_or(sheet.default_min_component_area_mm2())
     }
+
+    /// The share of the largest piece's area under which a piece is removed: [`MIN_PIECE_SHARE_OF_LARGEST`]
+    /// with the default smallest piece, 0 when one is given.
+    pub fn min_piece_share_of_largest(&self) -> f64 {
+        if self.min_component_area_mm2.is_none() {
+            MIN_PIECE_SHARE_OF_LARGEST
+        } else {
+            0.0
+        }
+    }
 }
 
 /// Hysteresis for the echo-ridge sheet ([`extend_ridge_sheet`]): the ridges of weaker echoes, whose
@@ -185,6 +195,11 @@ pub const DEFAULT_MIN_COMPONENT_AREA_MM2: f64 = 5.0;
 
 /// The same for the echo-ridge sheet (measured in docs/decisions/0015-clean-up-defaults.md).
 pub const DEFAULT_RIDGE_MIN_COMPONENT_AREA_MM2: f64 = 2.0;
+
+/// Unless a smallest piece is given, pieces under this share of the largest piece's area are removed
+/// too: a point scatterer's speck beside an organ (measured in
+/// docs/decisions/0048-pieces-relative-to-the-largest.md).
+pub const MIN_PIECE_SHARE_OF_LARGEST: f64 = 0.005;
 
 /// The surface `extract` outputs for each level.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]

@@ -22,8 +22,11 @@ pub struct SheetUsed {
     /// removed for it ([`Mesh::remove_triangles_not_backed`]).
     pub max_echo_distance_mm: f64,
     pub triangles_far_from_echoes: usize,
-    /// Smallest piece kept (mm^2).
+    /// Smallest piece kept (mm^2); and as a share of the largest piece (0: not applied), with the
+    /// pieces removed for it.
     pub min_component_area_mm2: f64,
+    pub min_piece_share_of_largest: f64,
+    pub minor_pieces_removed: usize,
     /// Least frames whose echoes must back a piece (0: not checked; at most the frames used), and the
     /// pieces removed for it.
     pub min_echo_frames: usize,
@@ -49,6 +52,8 @@ impl SheetUsed {
             max_echo_distance_mm: 0.0,
             triangles_far_from_echoes: 0,
             min_component_area_mm2: 0.0,
+            min_piece_share_of_largest: 0.0,
+            minor_pieces_removed: 0,
             min_echo_frames: 0,
             pieces_without_echoes: 0,
             bridge_gap_mm: 0.0,

@@ -301,7 +301,8 @@ pub(super) fn move_onto_echo_ridges(
 /// Removes the triangles far from every echo, then small pieces, then pieces too few frames echo, then
 /// draws each ridge sheet again through its vertices and the frames' echo crests linked to them
 /// (`extension`; small pieces removed once more), then joins the pieces that continue one another across
-/// small gaps, then (if asked) trims the rims.
+/// small gaps, then removes the pieces far smaller than the largest (unless a smallest piece is given),
+/// then (if asked) trims the rims.
 pub(super) fn remove_and_join_pieces(
     meshes: &mut [Mesh],
     sheets: &mut [SheetUsed],
@@ -360,6 +361,15 @@ pub(super) fn remove_and_join_pieces(
         if options.bridge_gap_mm.is_finite() && options.bridge_gap_mm > 0.0 {
             used.bridge_gap_mm = options.bridge_gap_mm;
             used.bridged_pieces = mesh.bridge_near_pieces(options.bridge_gap_mm);
+        }
+        // Specks far smaller than the structure, once it has all its pieces: the crests grow some, and
+        // a crumb bridged to a wall is part of it.
+        used.min_piece_share_of_largest = options.min_piece_share_of_largest();
+        if used.min_piece_share_of_largest > 0.0 {
+            used.minor_pieces_removed = mesh.remove_minor_components(
+                used.min_component_area_mm2,
+                used.min_piece_share_of_largest,
+            );
         }
         if options.trim_rim_rings > 0 {
             used.trim_rim_rings = options.trim_rim_rings;

@@ -1,4 +1,5 @@
 use super::*;
+use crate::pipeline::MIN_PIECE_SHARE_OF_LARGEST;
 use crate::rbf::SolverChoice;
 
 /// The first error of `config` after `change`.
@@ -28,6 +29,11 @@ fn the_defaults_validate_and_are_the_pipelines_defaults() {
     assert_eq!(options.echo_margin_mm, Some(1.0));
     assert_eq!(options.trust_distance_mm, None);
     assert_eq!(options.min_component_area_mm2, None);
+    assert_eq!(
+        options.min_piece_share_of_largest(),
+        MIN_PIECE_SHARE_OF_LARGEST
+    );
+    assert_eq!(MIN_PIECE_SHARE_OF_LARGEST, 0.005);
     assert_eq!(options.min_echo_frames, 3);
     assert_eq!(options.max_echo_distance_mm, 1.5);
     assert_eq!(options.bridge_gap_mm, 2.0);
@@ -77,12 +83,24 @@ fn every_knob_survives_a_round_trip_through_serde() {
 }
 
 #[test]
+fn a_smallest_piece_given_replaces_the_share_of_the_largest() {
+    let mut config = ExtractConfig::default();
+    config.tuning.cleanup.min_component_area_mm2 = Some(3.0);
+    let options = config.to_extract_options(InitialBand::Auto);
+    assert_eq!(options.min_component_area_mm2, Some(3.0));
+    assert_eq!(options.min_component_area_for(Sheet::EchoRidge), 3.0);
+    assert_eq!(options.min_piece_share_of_largest(), 0.0);
+}
+
+#[test]
 fn cleanup_off_keeps_the_surface_as_drawn() {
     let mut config = ExtractConfig::default();
     config.user.cleanup = false;
     let options = config.to_extract_options(InitialBand::Auto);
     assert_eq!(options.max_echo_distance_mm, 0.0);
     assert_eq!(options.min_component_area_mm2, Some(0.0));
+    // Cleanup off keeps every piece, however small beside the largest.
+    assert_eq!(options.min_piece_share_of_largest(), 0.0);
     assert_eq!(options.min_echo_frames, 0);
     assert_eq!(options.bridge_gap_mm, 0.0);
     assert_eq!(options.trim_rim_rings, 0);
