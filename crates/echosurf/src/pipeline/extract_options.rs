@@ -61,7 +61,8 @@ pub struct ExtractOptions {
     /// made in gaps of the data. 0 keeps them; the iso sheet is not checked.
     pub max_echo_distance_mm: f64,
     /// Connected pieces of a surface smaller than this (mm^2) are removed: isolated speckle blobs and
-    /// shreds. 0 keeps everything; `None`: the sheet's default ([`Sheet::default_min_component_area_mm2`]).
+    /// shreds. 0 keeps everything; `None`: the sheet's default ([`Sheet::default_min_component_area_mm2`]),
+    /// and at the end the pieces under [`MIN_PIECE_SHARE_OF_LARGEST`] of the largest one.
     pub min_component_area_mm2: Option<f64>,
     /// Pieces of a surface that echoes from fewer than this many frames back are removed (see
     /// [`Mesh::remove_components_seen_in_few_frames`]; an echo is a kept sample block at or above the

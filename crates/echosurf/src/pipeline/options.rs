@@ -166,7 +166,7 @@ pub struct CleanupTuning {
     /// Ridge sheet: triangles farther than this (mm) from every echo are removed; 0 keeps them.
     pub max_echo_distance_mm: f64,
     /// Pieces smaller than this (mm^2) are removed; `None` (`"auto"`): 5 for the iso sheet, 2 for the
-    /// ridge sheet.
+    /// ridge sheet, and at the end any piece under [`super::MIN_PIECE_SHARE_OF_LARGEST`] of the largest.
     #[serde(with = "auto_f64")]
     pub min_component_area_mm2: Option<f64>,
     /// Pieces that echoes from fewer than this many frames back are removed; 0 keeps every piece.
