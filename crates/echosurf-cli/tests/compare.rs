@@ -74,6 +74,47 @@ fn compare_reports_distances_completeness_and_topology() {
     assert_eq!(v["mesh_watertight"], true);
     assert_eq!(v["truth_topology"]["components"], 1);
     assert_eq!(v["hausdorff_mm"], v["accuracy"]["max_mm"]);
+    assert_eq!(v["walls"]["truth_walls"], 1);
+    assert_eq!(v["walls"]["edges_across_walls"], 0);
+
+    // A hollow box (walls at 0-10 and 3-7 mm) against a box just outside each wall: two walls, and
+    // no piece of the mesh joins them.
+    let both = |a: Mesh, b: Mesh| {
+        let base = a.vertices.len() as u32;
+        Mesh {
+            vertices: [a.vertices, b.vertices].concat(),
+            normals: vec![],
+            triangles: a
+                .triangles
+                .into_iter()
+                .chain(b.triangles.into_iter().map(|t| t.map(|i| i + base)))
+                .collect(),
+        }
+    };
+    let hollow = dir.path().join("hollow.stl");
+    echosurf::io::write_mesh(
+        &hollow,
+        &both(
+            cuboid(DVec3::ZERO, DVec3::splat(10.0)),
+            cuboid(DVec3::splat(3.0), DVec3::splat(7.0)),
+        ),
+    )
+    .unwrap();
+    let two = dir.path().join("two.ply");
+    echosurf::io::write_mesh(
+        &two,
+        &both(
+            cuboid(DVec3::splat(-0.25), DVec3::splat(10.25)),
+            cuboid(DVec3::splat(3.25), DVec3::splat(6.75)),
+        ),
+    )
+    .unwrap();
+    let out = compare(&two, &hollow, true);
+    assert!(out.status.success());
+    let w: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(w["walls"]["truth_walls"], 2);
+    assert_eq!(w["walls"]["edges_across_walls"], 0);
+    assert_eq!(w["walls"]["pieces_on_several_walls"], 0);
 
     let out = compare(&mesh, &truth, false);
     assert!(out.status.success());
@@ -83,6 +124,10 @@ fn compare_reports_distances_completeness_and_topology() {
         "{text}"
     );
     assert!(text.contains("watertight"), "{text}");
+    assert!(
+        text.contains("walls of the truth (components)  1: 0 mesh edges across walls"),
+        "{text}"
+    );
 
     // A missing or broken file is an error naming the file, not a panic.
     let broken = dir.path().join("broken.ply");

@@ -6,6 +6,9 @@
 //! fixed chunks whose results are concatenated in order, so the numbers do not depend on the thread count.
 
 pub use crate::spatial::{Nearest, TriangleBvh, closest_point_on_triangle};
+pub use walls::{WALL_MIN_SHARE, WallJoins};
+
+mod walls;
 
 use glam::DVec3;
 use rand::{Rng, SeedableRng};
@@ -72,6 +75,8 @@ pub struct Comparison {
     pub truth_area_mm2: f64,
     /// Area of the truth triangles selected by the mask (all of it without one).
     pub truth_compared_area_mm2: f64,
+    /// Which of the truth's separate walls (components) the mesh's pieces join.
+    pub walls: WallJoins,
 }
 
 /// Scores `mesh` against `truth`. Errors if either has no area to sample, the mask has the wrong length
@@ -138,6 +143,7 @@ pub fn compare_meshes(mesh: &Mesh, truth: &Mesh, options: &CompareOptions) -> Re
         mesh_area_mm2: mesh_samples.area_mm2,
         truth_area_mm2: truth.area_mm2(),
         truth_compared_area_mm2: truth_samples.area_mm2,
+        walls: walls::wall_joins(mesh, truth, &truth_bvh),
     })
 }
 
