@@ -134,7 +134,7 @@ for shape in $shapes; do
         start=$(date +%s.%N)
         if ! "$echosurf" extract "${args[@]}" >"$log" 2>&1; then
             echo "independent_bench.sh: extract failed for $shape/$route, see $log" >&2
-            rows+=("| $shape | $route | extract failed | | | | | | |")
+            rows+=("| $shape | $route | extract failed | | | | | | | |")
             status=1
             continue
         fi
