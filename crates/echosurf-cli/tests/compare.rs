@@ -125,7 +125,7 @@ fn compare_reports_distances_completeness_and_topology() {
     );
     assert!(text.contains("watertight"), "{text}");
     assert!(
-        text.contains("walls of the truth (components)  1: 0 mesh edges across walls"),
+        text.contains("\nwalls of the truth (components)  1: 0 mesh edges across walls, 0 pieces on several walls\n"),
         "{text}"
     );
 

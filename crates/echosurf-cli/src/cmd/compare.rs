@@ -270,7 +270,8 @@ fn table(args: &Args, c: &Comparison, swept: Option<&SweptFacingScore>) -> Strin
     out.push_str(&row("reverse truth->mesh", &c.reverse));
     out.push_str(&format!(
         "\ncompleteness (truth within 1 mm) {:.2} %\nsymmetric Hausdorff              {:.4} mm\n\
-         area mesh / truth                {:.1} / {:.1} mm^2\n         walls of the truth (components)  {}: {} mesh edges across walls, {} pieces on several\n\n",
+         area mesh / truth                {:.1} / {:.1} mm^2\n\
+         walls of the truth (components)  {}: {} mesh edges across walls, {} pieces on several walls\n\n",
         100.0 * c.completeness_1mm,
         c.hausdorff_mm,
         c.mesh_area_mm2,
