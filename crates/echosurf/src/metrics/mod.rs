@@ -125,9 +125,15 @@ pub fn compare_meshes(mesh: &Mesh, truth: &Mesh, options: &CompareOptions) -> Re
 
     let forward = distances_to(&truth_bvh, &mesh_samples.points);
     let backward = distances_to(&mesh_bvh, &truth_samples.points);
-    let mesh_vertices = used_vertices(mesh, &all_mesh);
+    // Each mesh vertex's nearest truth triangle: its distance bounds the accuracy's max, its triangle
+    // puts the vertex on a wall ([`WallJoins`]).
+    let mesh_vertex_nearest = used_vertex_nearest(mesh, &truth_bvh);
     let truth_vertices = used_vertices(truth, &truth_selected);
-    let forward_vertex_max = max_of(&distances_to(&truth_bvh, &mesh_vertices));
+    let forward_vertex_max = mesh_vertex_nearest
+        .iter()
+        .flatten()
+        .map(|n| n.distance_mm)
+        .fold(0.0, f64::max);
     let backward_vertex_max = max_of(&distances_to(&mesh_bvh, &truth_vertices));
 
     let within = backward.iter().filter(|&&d| d <= 1.0).count();
@@ -143,7 +149,7 @@ pub fn compare_meshes(mesh: &Mesh, truth: &Mesh, options: &CompareOptions) -> Re
         mesh_area_mm2: mesh_samples.area_mm2,
         truth_area_mm2: truth.area_mm2(),
         truth_compared_area_mm2: truth_samples.area_mm2,
-        walls: walls::wall_joins(mesh, truth, &truth_bvh),
+        walls: walls::wall_joins(mesh, truth, &mesh_vertex_nearest),
     })
 }
 
@@ -218,8 +224,16 @@ pub fn vertex_distance_map(mesh: &Mesh, to: &Mesh, scale_mm: f64) -> (Vec<f64>, 
 const CHUNK: usize = 4096;
 
 fn distances_to(bvh: &TriangleBvh, points: &[DVec3]) -> Vec<f64> {
+    nearest_to(bvh, points)
+        .into_iter()
+        .map(|n| n.map_or(f64::INFINITY, |n| n.distance_mm))
+        .collect()
+}
+
+/// Each point's nearest triangle of `bvh` (`None` for every point of an empty one), in input order.
+fn nearest_to(bvh: &TriangleBvh, points: &[DVec3]) -> Vec<Option<Nearest>> {
     if bvh.is_empty() {
-        return vec![f64::INFINITY; points.len()];
+        return vec![None; points.len()];
     }
     points
         .par_chunks(CHUNK)
@@ -229,16 +243,31 @@ fn distances_to(bvh: &TriangleBvh, points: &[DVec3]) -> Vec<f64> {
             let mut hint = None;
             chunk
                 .iter()
-                .map(move |&p| match bvh.nearest_with_hint(p, hint) {
-                    Some(n) => {
-                        hint = Some(n.triangle);
-                        n.distance_mm
-                    }
-                    None => f64::INFINITY,
+                .map(move |&p| {
+                    let n = bvh.nearest_with_hint(p, hint);
+                    hint = n.map(|n| n.triangle).or(hint);
+                    n
                 })
                 .collect::<Vec<_>>()
         })
         .collect()
+}
+
+/// Per vertex of `mesh`, its nearest triangle of `bvh`; `None` for vertices no triangle uses.
+fn used_vertex_nearest(mesh: &Mesh, bvh: &TriangleBvh) -> Vec<Option<Nearest>> {
+    let mut used = vec![false; mesh.vertices.len()];
+    for t in &mesh.triangles {
+        for &i in t {
+            used[i as usize] = true;
+        }
+    }
+    let indices: Vec<usize> = (0..used.len()).filter(|&i| used[i]).collect();
+    let points: Vec<DVec3> = indices.iter().map(|&i| mesh.vertices[i]).collect();
+    let mut nearest = vec![None; mesh.vertices.len()];
+    for (i, n) in indices.into_iter().zip(nearest_to(bvh, &points)) {
+        nearest[i] = n;
+    }
+    nearest
 }
 
 fn validate(mesh: &Mesh, what: &str) -> Result<()> {

@@ -1,9 +1,7 @@
 //! Which of the truth's walls a mesh joins: a hollow phantom's outer and inner surfaces are separate
 //! components of its truth, and one sheet per wall means no piece of the mesh runs from one to another.
 
-use rayon::prelude::*;
-
-use super::TriangleBvh;
+use super::Nearest;
 use crate::mesh::Mesh;
 
 /// A piece counts as lying on a wall when at least this share of its vertices do.
@@ -21,9 +19,13 @@ pub struct WallJoins {
     pub pieces_on_several_walls: usize,
 }
 
-/// [`WallJoins`] of `mesh` against `truth`, whose triangles `truth_bvh` holds. Meshes are validated by
-/// the caller (indices in range).
-pub(super) fn wall_joins(mesh: &Mesh, truth: &Mesh, truth_bvh: &TriangleBvh) -> WallJoins {
+/// [`WallJoins`] of `mesh` against `truth`, given each mesh vertex's nearest truth triangle (`None`:
+/// unused vertex). Meshes are validated by the caller (indices in range).
+pub(super) fn wall_joins(
+    mesh: &Mesh,
+    truth: &Mesh,
+    vertex_nearest: &[Option<Nearest>],
+) -> WallJoins {
     // Truth components, numbered densely in order of first triangle.
     let component = truth.triangle_components();
     let mut dense = vec![usize::MAX; component.len()];
@@ -38,21 +40,9 @@ pub(super) fn wall_joins(mesh: &Mesh, truth: &Mesh, truth_bvh: &TriangleBvh) -> 
             dense[c]
         })
         .collect();
-    let mut used = vec![false; mesh.vertices.len()];
-    for t in &mesh.triangles {
-        for &i in t {
-            used[i as usize] = true;
-        }
-    }
-    let wall: Vec<Option<usize>> = mesh
-        .vertices
-        .par_iter()
-        .zip(&used)
-        .map(|(&v, &u)| {
-            u.then(|| truth_bvh.nearest(v))
-                .flatten()
-                .map(|n| wall_of_triangle[n.triangle as usize])
-        })
+    let wall: Vec<Option<usize>> = vertex_nearest
+        .iter()
+        .map(|n| n.map(|n| wall_of_triangle[n.triangle as usize]))
         .collect();
     let mut edges: Vec<(u32, u32)> = mesh
         .triangles
@@ -143,11 +133,13 @@ mod tests {
     fn a_sheet_per_wall_joins_nothing_and_a_fold_between_them_is_counted() {
         // Truth: two walls 2 mm apart (z = 0 and z = 2), 10 mm square each.
         let truth = joined(&[square(0.0, 10.0, 4), square(2.0, 10.0, 4)]);
-        let bvh = TriangleBvh::new(&truth);
+        let bvh = super::super::TriangleBvh::new(&truth);
+        let wall_joins =
+            |m: &Mesh| wall_joins(m, &truth, &super::super::used_vertex_nearest(m, &bvh));
         // One sheet on each wall, a little off it: two pieces, nothing joined.
         let apart = joined(&[square(0.2, 10.0, 5), square(1.8, 10.0, 5)]);
         assert_eq!(
-            wall_joins(&apart, &truth, &bvh),
+            wall_joins(&apart),
             WallJoins {
                 truth_walls: 2,
                 edges_across_walls: 0,
@@ -172,12 +164,12 @@ mod tests {
                 fold.triangles.push([a, a + 4, a + 3]);
             }
         }
-        let joins = wall_joins(&fold, &truth, &bvh);
+        let joins = wall_joins(&fold);
         assert_eq!(joins.truth_walls, 2);
         assert_eq!(joins.edges_across_walls, 5);
         assert_eq!(joins.pieces_on_several_walls, 1);
         // The fold beside the two sheets: still one piece on several walls.
         let all = joined(&[apart, fold]);
-        assert_eq!(wall_joins(&all, &truth, &bvh).pieces_on_several_walls, 1);
+        assert_eq!(wall_joins(&all).pieces_on_several_walls, 1);
     }
 }
