@@ -255,12 +255,7 @@ fn nearest_to(bvh: &TriangleBvh, points: &[DVec3]) -> Vec<Option<Nearest>> {
 
 /// Per vertex of `mesh`, its nearest triangle of `bvh`; `None` for vertices no triangle uses.
 fn used_vertex_nearest(mesh: &Mesh, bvh: &TriangleBvh) -> Vec<Option<Nearest>> {
-    let mut used = vec![false; mesh.vertices.len()];
-    for t in &mesh.triangles {
-        for &i in t {
-            used[i as usize] = true;
-        }
-    }
+    let used = used_flags(mesh, &vec![true; mesh.triangles.len()]);
     let indices: Vec<usize> = (0..used.len()).filter(|&i| used[i]).collect();
     let points: Vec<DVec3> = indices.iter().map(|&i| mesh.vertices[i]).collect();
     let mut nearest = vec![None; mesh.vertices.len()];
@@ -361,18 +356,23 @@ fn sample_surface(
 }
 
 fn used_vertices(mesh: &Mesh, selected: &[bool]) -> Vec<DVec3> {
+    mesh.vertices
+        .iter()
+        .zip(&used_flags(mesh, selected))
+        .filter(|(_, u)| **u)
+        .map(|(v, _)| *v)
+        .collect()
+}
+
+/// Per vertex of `mesh`: whether a triangle marked in `selected` uses it.
+fn used_flags(mesh: &Mesh, selected: &[bool]) -> Vec<bool> {
     let mut used = vec![false; mesh.vertices.len()];
     for (t, _) in mesh.triangles.iter().zip(selected).filter(|(_, s)| **s) {
         for &i in t {
             used[i as usize] = true;
         }
     }
-    mesh.vertices
-        .iter()
-        .zip(&used)
-        .filter(|(_, u)| **u)
-        .map(|(v, _)| *v)
-        .collect()
+    used
 }
 
 fn max_of(values: &[f64]) -> f64 {
