@@ -4,8 +4,9 @@
 //! - local level, restricted additive Schwarz: every tree leaf is a subdomain, extended by its nearest
 //!   neighbours; a dense local RBF solve (with its own reduced trend) is factored once and only the rows of
 //!   the leaf's own points are kept (as f32, to save memory);
-//! - coarse level ([`super::coarse`]): a dense solve on up to 2,048 well-spread samples, applied before
-//!   the local corrections, so the iteration count grows slowly with N (8 at 10k, 17 at 100k samples).
+//! - coarse level ([`super::coarse`]): a solve on N / 8 well-spread samples, applied before the local
+//!   corrections, so the iteration count grows slowly with N. Up to 2,048 points it is factored; a larger
+//!   coarse level is preconditioned the same way, recursively (docs/decisions/0049-nested-coarse-level.md).
 //!
 //! The iteration stops when the system residual `max_i |f_i - s(x_i) + w l_i|` (grey levels; equal to the
 //! data misfit at w = 0) is below the fitting accuracy, measured with the accurate treecode product (the
@@ -25,7 +26,7 @@ use std::time::Instant;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::coarse::CoarseLevel;
+use super::coarse::{CoarseConfig, CoarseLevel};
 use super::direct::lu_solve;
 use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams, split_by_sizes};
 use super::trend::TrendBasis;
@@ -37,11 +38,6 @@ use crate::{Error, Result};
 /// setup cost grows like the cube of the subdomain size (3.5 s of a 60 s fit at 100k).
 const OVERLAP_POINTS: usize = 160;
 const RESTART: usize = 40;
-/// Coarse level size: at most this many points and at most N / [`COARSE_RATIO`] (at 10k samples:
-/// 1,024; from ~33k samples on: 2,048). Its dense factor costs `8 |C|^2` bytes (34 MB at 2,048) and `|C|^3` time (0.2 s at 2,048).
-/// Measured at 10k samples: |C| = 256 -> 15 iterations, 1,024 -> 11, 2,048 -> 7 (overlap 96).
-const COARSE_MAX_POINTS: usize = 2048;
-const COARSE_RATIO: usize = 8;
 /// The cheap Arnoldi product is used only when its error on a solution-like vector is at most this many
 /// times the fitting accuracy (docs/decisions/0043-arnoldi-product-accuracy.md).
 const CHEAP_PRODUCT_MAX_ERROR_RATIO: f64 = 4.0;
@@ -52,6 +48,9 @@ pub struct FastBreakdown {
     /// Treecodes, interaction lists and the preconditioner (local and coarse factorisations).
     pub setup_seconds: f64,
     pub coarse_points: usize,
+    /// Points of each coarse level, largest first: all but the last are preconditioned themselves
+    /// rather than factored (levels over 2,048 points).
+    pub coarse_level_points: Vec<usize>,
     /// Products with the accurate treecode (one per true-residual check).
     pub accurate_products: usize,
     pub accurate_product_seconds: f64,
@@ -112,7 +111,7 @@ impl std::fmt::Debug for FastSystem {
     }
 }
 
-struct Schwarz {
+pub(super) struct Schwarz {
     /// Per leaf: domain points (tree positions) and the `inner x domain` rows of the local inverse.
     domains: Vec<(Vec<u32>, Vec<f32>)>,
     leaf_sizes: Vec<usize>,
@@ -166,16 +165,23 @@ impl FastSystem {
         basis: &TrendBasis,
         params: TreecodeParams,
     ) -> Result<FastSystem> {
-        Self::with_levels(points, smoothing, basis, params, true)
+        Self::with_levels(
+            points,
+            smoothing,
+            basis,
+            params,
+            Some(CoarseConfig::default()),
+        )
     }
 
-    /// As [`FastSystem::new`]; `coarse = false` drops the coarse level (one-level Schwarz, for tests).
+    /// As [`FastSystem::new`] with the coarse levels built by `coarse`; None drops them (one-level
+    /// Schwarz, for tests).
     pub fn with_levels(
         points: &[DVec3],
         smoothing: f64,
         basis: &TrendBasis,
         params: TreecodeParams,
-        coarse: bool,
+        coarse: Option<CoarseConfig>,
     ) -> Result<FastSystem> {
         let start = Instant::now();
         let treecode = Treecode::new(points, params);
@@ -191,7 +197,7 @@ impl FastSystem {
             .map(|i| treecode.tree.point(i))
             .collect();
         let u = basis.matrix(&tree_points);
-        let precond = Schwarz::new(&treecode, smoothing, coarse)?;
+        let precond = Schwarz::new(&treecode.tree, smoothing, coarse.as_ref())?;
         Ok(FastSystem {
             treecode,
             lists,
@@ -212,6 +218,7 @@ impl FastSystem {
             accurate_arnoldi,
             setup_seconds: self.setup_seconds,
             coarse_points: self.precond.coarse.as_ref().map_or(0, |c| c.len()),
+            coarse_level_points: self.precond.coarse_level_sizes(),
             accurate_products: self.accurate.calls(),
             accurate_product_seconds: self.accurate.seconds(),
             inner_products: self.inner_counter.calls(),
@@ -491,13 +498,7 @@ impl FastSystem {
         self.treecode.memory_bytes()
             + self.lists.memory_bytes()
             + self.u.len() * 8
-            + self
-                .precond
-                .domains
-                .iter()
-                .map(|(d, b)| d.len() * 4 + b.len() * 4)
-                .sum::<usize>()
-            + self.precond.coarse.as_ref().map_or(0, |c| c.memory_bytes())
+            + self.precond.memory_bytes()
             + self
                 .inner
                 .as_ref()
@@ -506,8 +507,13 @@ impl FastSystem {
 }
 
 impl Schwarz {
-    fn new(tc: &Treecode, smoothing: f64, with_coarse: bool) -> Result<Schwarz> {
-        let tree = &tc.tree;
+    /// The preconditioner of the system on `tree`'s points: a subdomain per leaf, and with `coarse` the
+    /// coarse level (itself preconditioned this way when it is too large to factor).
+    pub(super) fn new(
+        tree: &Tree,
+        smoothing: f64,
+        coarse: Option<&CoarseConfig>,
+    ) -> Result<Schwarz> {
         let n = tree.len();
         let leaves = &tree.leaves;
         let domains: Vec<Option<(Vec<u32>, Vec<f32>)>> = leaves
@@ -544,10 +550,9 @@ impl Schwarz {
             .iter()
             .map(|&l| tree.nodes[l as usize].len())
             .collect();
-        let coarse = if with_coarse {
-            CoarseLevel::new(tree, coarse_points(n), smoothing)?
-        } else {
-            None
+        let coarse = match coarse {
+            Some(config) => CoarseLevel::new(tree, config, smoothing)?,
+            None => None,
         };
         Ok(Schwarz {
             domains: out,
@@ -556,8 +561,22 @@ impl Schwarz {
         })
     }
 
+    /// Bytes held: the local inverse rows and the coarse levels.
+    pub(super) fn memory_bytes(&self) -> usize {
+        self.domains
+            .iter()
+            .map(|(d, b)| d.len() * 4 + b.len() * 4)
+            .sum::<usize>()
+            + self.coarse.as_ref().map_or(0, |c| c.memory_bytes())
+    }
+
+    /// Points of each coarse level, largest first (empty without one).
+    pub(super) fn coarse_level_sizes(&self) -> Vec<usize> {
+        self.coarse.as_ref().map_or(Vec::new(), |c| c.level_sizes())
+    }
+
     /// Two-level application: coarse solve, residual update, then the local corrections.
-    fn apply(&self, tree: &Tree, r: &[f64], z: &mut [f64]) {
+    pub(super) fn apply(&self, tree: &Tree, r: &[f64], z: &mut [f64]) {
         match &self.coarse {
             None => self.apply_local(r, z),
             Some(coarse) => {
@@ -681,13 +700,14 @@ fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
         });
 }
 
-/// Coarse level size for `n` samples.
-fn coarse_points(n: usize) -> usize {
-    (n / COARSE_RATIO).min(COARSE_MAX_POINTS)
-}
-
 /// `out = (A - wI) l` with treecode `tc`.
-fn product(tc: &Treecode, lists: &InteractionLists, smoothing: f64, l: &[f64], out: &mut [f64]) {
+pub(super) fn product(
+    tc: &Treecode,
+    lists: &InteractionLists,
+    smoothing: f64,
+    l: &[f64],
+    out: &mut [f64],
+) {
     let proxies = tc.upward(l);
     tc.evaluate(&tc.tree, lists, l, &proxies, out, None);
     for (o, &li) in out.iter_mut().zip(l) {

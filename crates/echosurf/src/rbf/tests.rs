@@ -371,8 +371,9 @@ fn coarse_level_cuts_iterations_and_the_solve_meets_the_accuracy_exactly() {
     let (w, accuracy) = (1.0, 2.0);
     let basis = trend::TrendBasis::new(&pts);
     let params = tree::TreecodeParams::for_accuracy(1e-4);
-    let solve = |coarse| {
-        fast::FastSystem::with_levels(&pts, w, &basis, params, coarse)
+    let solve = |coarse: bool| {
+        let levels = coarse.then(coarse::CoarseConfig::default);
+        fast::FastSystem::with_levels(&pts, w, &basis, params, levels)
             .unwrap()
             .solve(&vals, accuracy, 500, None, &NoProgress)
             .unwrap()
@@ -392,6 +393,39 @@ fn coarse_level_cuts_iterations_and_the_solve_meets_the_accuracy_exactly() {
     assert!(!two.breakdown.accurate_arnoldi);
     assert!(two.breakdown.inner_products > 1);
     let (worst, _) = dense_residual(&pts, &vals, &two.coefficients, &two.trend, &basis, w);
+    assert!(worst <= accuracy + 0.05, "exact max residual {worst}");
+}
+
+/// A coarse level too large to factor (forced here at 6,000 samples by a factoring limit of 128 points)
+/// is preconditioned by its own two levels: the solve must still meet the accuracy exactly, in about as
+/// many iterations as with the same coarse level factored.
+#[test]
+fn a_nested_coarse_level_meets_the_accuracy_in_about_the_factored_iterations() {
+    let (pts, vals) = ultrasound_like_samples(6000, 83);
+    let (w, accuracy) = (0.5, 1.0);
+    let basis = trend::TrendBasis::new(&pts);
+    let params = tree::TreecodeParams::for_accuracy(1e-4);
+    let solve = |dense_max_points| {
+        let levels = coarse::CoarseConfig {
+            dense_max_points,
+            ..coarse::CoarseConfig::default()
+        };
+        fast::FastSystem::with_levels(&pts, w, &basis, params, Some(levels))
+            .unwrap()
+            .solve(&vals, accuracy, 500, None, &NoProgress)
+            .unwrap()
+    };
+    let (factored, nested) = (solve(2048), solve(128));
+    // 6,000 / 8 rounded down to a power of two: 512 points, factored or over 64 factored ones.
+    assert_eq!(factored.breakdown.coarse_level_points, vec![512]);
+    assert_eq!(nested.breakdown.coarse_level_points, vec![512, 64]);
+    assert!(
+        nested.iterations <= factored.iterations + 3,
+        "nested {} vs factored {} iterations",
+        nested.iterations,
+        factored.iterations
+    );
+    let (worst, _) = dense_residual(&pts, &vals, &nested.coefficients, &nested.trend, &basis, w);
     assert!(worst <= accuracy + 0.05, "exact max residual {worst}");
 }
 
