@@ -18,9 +18,9 @@ use faer::Mat;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::direct::SequentialLu;
+use super::direct::{SequentialLu, saddle_matrix};
 use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams};
-use super::trend::TrendBasis;
+use super::trend::{TrendBasis, project_out};
 use crate::{Error, Result};
 
 /// Leaf size of the treecode over the coarse points: small, because the coarse points are sparse and
@@ -127,21 +127,8 @@ impl CoarseLevel {
             return Ok(None);
         }
         let solver = if m <= config.dense_max_points {
-            let u = basis.matrix(&pts);
-            let size = m + r;
-            let a = Mat::<f64>::from_fn(size, size, |i, j| {
-                if i < m && j < m {
-                    (pts[i] - pts[j]).length() - if i == j { smoothing } else { 0.0 }
-                } else if i < m {
-                    u[i * r + (j - m)]
-                } else if j < m {
-                    u[j * r + (i - m)]
-                } else {
-                    0.0
-                }
-            });
             CoarseSolver::Dense {
-                lu: SequentialLu::new(a),
+                lu: SequentialLu::new(saddle_matrix(&pts, smoothing, &basis)),
                 rank: r,
             }
         } else {
@@ -281,21 +268,6 @@ impl NestedSolver {
     }
 }
 
-/// `v -= U (U^T v)` for an orthonormal `U` (row-major, `rank` columns), summed in fixed order.
-fn project_out(v: &mut [f64], u: &[f64], rank: usize) {
-    let mut d = vec![0.0; rank];
-    for (i, &vi) in v.iter().enumerate() {
-        for k in 0..rank {
-            d[k] += u[i * rank + k] * vi;
-        }
-    }
-    for (i, vi) in v.iter_mut().enumerate() {
-        for k in 0..rank {
-            *vi -= u[i * rank + k] * d[k];
-        }
-    }
-}
-
 /// At most `max_points` (and more than a quarter of that) well-spread samples (fine-tree positions): a
 /// median-split tree over the samples with leaves of at most `ceil(N / M)` samples, M the largest power
 /// of two <= `max_points` (median splits then give at most M leaves), and from each leaf the sample
@@ -351,6 +323,19 @@ mod tests {
         })
     }
 
+    /// The dense solve on `level`'s points of the fine residual `r` restricted to them.
+    fn dense_solve_on_level(tree: &Tree, level: &CoarseLevel, r: &[f64], w: f64) -> Vec<f64> {
+        let sub: Vec<DVec3> = level
+            .index
+            .iter()
+            .map(|&i| tree.point(i as usize))
+            .collect();
+        let rhs: Vec<f64> = level.index.iter().map(|&i| r[i as usize]).collect();
+        solve_dense(&sub, &rhs, w, &TrendBasis::new(&sub))
+            .unwrap()
+            .0
+    }
+
     /// At most N / 16 coarse points (250 of 4,000: 128 after rounding to a power of two), factored.
     fn ratio_16() -> CoarseConfig {
         CoarseConfig {
@@ -388,13 +373,7 @@ mod tests {
             .map(|_| rng.random_range(-20.0..20.0))
             .collect();
         let got = level.solve(&r);
-        let sub: Vec<DVec3> = level
-            .index
-            .iter()
-            .map(|&i| tree.point(i as usize))
-            .collect();
-        let rhs: Vec<f64> = level.index.iter().map(|&i| r[i as usize]).collect();
-        let (want, _) = solve_dense(&sub, &rhs, w, &TrendBasis::new(&sub)).unwrap();
+        let want = dense_solve_on_level(&tree, &level, &r, w);
         let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         for (a, b) in got.iter().zip(&want) {
             // Two pivoted LUs of the same ~250 x 250 system: agreement to round-off times its condition.
@@ -460,15 +439,7 @@ mod tests {
             // 1,000 points rounded to 512 (nested), its own coarse level 64 (factored).
             assert_eq!(level.level_sizes(), vec![512, 64]);
             if want.is_empty() {
-                let sub: Vec<DVec3> = level
-                    .index
-                    .iter()
-                    .map(|&i| tree.point(i as usize))
-                    .collect();
-                let rhs: Vec<f64> = level.index.iter().map(|&i| r[i as usize]).collect();
-                want = solve_dense(&sub, &rhs, w, &TrendBasis::new(&sub))
-                    .unwrap()
-                    .0;
+                want = dense_solve_on_level(&tree, &level, &r, w);
             }
             let got = level.solve(&r);
             let diff: f64 = got.iter().zip(&want).map(|(a, b)| (a - b).powi(2)).sum();

@@ -10,18 +10,12 @@ use glam::DVec3;
 use super::trend::TrendBasis;
 use crate::{Error, Result};
 
-/// Solves `[A - wI, U; U^T, 0] [l; d] = [f; 0]` densely. Returns (l, d) with d the trend-basis coefficients.
-pub(crate) fn solve_dense(
-    points: &[DVec3],
-    values: &[f64],
-    smoothing: f64,
-    basis: &TrendBasis,
-) -> Result<(Vec<f64>, Vec<f64>)> {
+/// The saddle matrix `[[A - wI, U], [U^T, 0]]` of `points` (A the |x - y| kernel, U the trend basis).
+pub(crate) fn saddle_matrix(points: &[DVec3], smoothing: f64, basis: &TrendBasis) -> Mat<f64> {
     let n = points.len();
     let r = basis.rank();
     let u = basis.matrix(points);
-    let size = n + r;
-    let m = Mat::<f64>::from_fn(size, size, |i, j| {
+    Mat::<f64>::from_fn(n + r, n + r, |i, j| {
         if i < n && j < n {
             (points[i] - points[j]).length() - if i == j { smoothing } else { 0.0 }
         } else if i < n {
@@ -31,7 +25,19 @@ pub(crate) fn solve_dense(
         } else {
             0.0
         }
-    });
+    })
+}
+
+/// Solves `[A - wI, U; U^T, 0] [l; d] = [f; 0]` densely. Returns (l, d) with d the trend-basis coefficients.
+pub(crate) fn solve_dense(
+    points: &[DVec3],
+    values: &[f64],
+    smoothing: f64,
+    basis: &TrendBasis,
+) -> Result<(Vec<f64>, Vec<f64>)> {
+    let n = points.len();
+    let size = n + basis.rank();
+    let m = saddle_matrix(points, smoothing, basis);
     let mut rhs = Mat::<f64>::from_fn(size, 1, |i, _| if i < n { values[i] } else { 0.0 });
     SequentialLu::new(m).solve_in_place(rhs.as_mut());
     let solution: Vec<f64> = (0..size).map(|i| rhs[(i, 0)]).collect();

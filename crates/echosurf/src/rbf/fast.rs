@@ -29,7 +29,7 @@ use rayon::prelude::*;
 use super::coarse::{CoarseConfig, CoarseLevel};
 use super::direct::lu_solve;
 use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams, split_by_sizes};
-use super::trend::TrendBasis;
+use super::trend::{TrendBasis, project_out, trend_coefficients};
 use crate::progress::Progress;
 use crate::{Error, Result};
 
@@ -257,24 +257,11 @@ impl FastSystem {
 
     /// `U^T v`, summed in fixed order.
     fn trend_coefficients(&self, v: &[f64]) -> Vec<f64> {
-        let r = self.rank;
-        let mut d = vec![0.0; r];
-        for (i, &vi) in v.iter().enumerate() {
-            for k in 0..r {
-                d[k] += self.u[i * r + k] * vi;
-            }
-        }
-        d
+        trend_coefficients(&self.u, self.rank, v)
     }
 
     fn project(&self, v: &mut [f64]) {
-        let r = self.rank;
-        let d = self.trend_coefficients(v);
-        for (i, vi) in v.iter_mut().enumerate() {
-            for k in 0..r {
-                *vi -= self.u[i * r + k] * d[k];
-            }
-        }
+        project_out(v, &self.u, self.rank);
     }
 
     /// The first Arnoldi step's preconditioned vector `z = M^-1 e` (`e` the initial residual) and its

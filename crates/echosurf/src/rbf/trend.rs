@@ -94,6 +94,28 @@ impl TrendBasis {
     }
 }
 
+/// `U^T v` for a row-major `U` with `rank` columns, summed in fixed order.
+pub(crate) fn trend_coefficients(u: &[f64], rank: usize, v: &[f64]) -> Vec<f64> {
+    let mut d = vec![0.0; rank];
+    for (i, &vi) in v.iter().enumerate() {
+        for k in 0..rank {
+            d[k] += u[i * rank + k] * vi;
+        }
+    }
+    d
+}
+
+/// `v -= U (U^T v)` for an orthonormal row-major `U` with `rank` columns: `v` projected onto the trend's
+/// complement.
+pub(crate) fn project_out(v: &mut [f64], u: &[f64], rank: usize) {
+    let d = trend_coefficients(u, rank, v);
+    for (i, vi) in v.iter_mut().enumerate() {
+        for k in 0..rank {
+            *vi -= u[i * rank + k] * d[k];
+        }
+    }
+}
+
 fn monomials(p: DVec3, origin: DVec3, scale: f64) -> [f64; 4] {
     let q = (p - origin) / scale;
     [1.0, q.x, q.y, q.z]
