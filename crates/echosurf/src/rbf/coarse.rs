@@ -19,6 +19,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::direct::{SequentialLu, saddle_matrix};
+use super::fast::{CHEAP_PRODUCT_NODES, CHEAP_PRODUCT_THETA};
 use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams};
 use super::trend::{TrendBasis, project_out};
 use crate::{Error, Result};
@@ -35,10 +36,6 @@ const COARSE_PRODUCT_NODES: usize = 6;
 
 /// Leaf size of the tree over a nested coarse level's points (its subdomains), as the fine tree's.
 const NESTED_LEAF: usize = 64;
-/// Treecode of a nested level's Richardson residual: the cheap Arnoldi product's parameters
-/// ([`super::fast::inner_params`]); it only has to keep the inner steps a fixed linear map that contracts.
-const NESTED_PRODUCT_THETA: f64 = 0.7;
-const NESTED_PRODUCT_NODES: usize = 6;
 
 /// How the coarse levels of the Schwarz preconditioner are built
 /// (docs/decisions/0049-nested-coarse-level.md).
@@ -136,8 +133,9 @@ impl CoarseLevel {
                 &pts,
                 TreecodeParams {
                     leaf_size: NESTED_LEAF,
-                    theta: NESTED_PRODUCT_THETA,
-                    nodes_per_side: NESTED_PRODUCT_NODES,
+                    // The cheap product: it only has to keep the Richardson steps a fixed linear map.
+                    theta: CHEAP_PRODUCT_THETA,
+                    nodes_per_side: CHEAP_PRODUCT_NODES,
                 },
             );
             let lists = treecode.interactions(&treecode.tree);

@@ -38,6 +38,10 @@ use crate::{Error, Result};
 /// setup cost grows like the cube of the subdomain size (3.5 s of a 60 s fit at 100k).
 const OVERLAP_POINTS: usize = 160;
 const RESTART: usize = 40;
+/// Separation and Chebyshev nodes of the cheap products: the Arnoldi steps' ([`inner_params`]) and the
+/// Richardson residual of a nested coarse level.
+pub(super) const CHEAP_PRODUCT_THETA: f64 = 0.7;
+pub(super) const CHEAP_PRODUCT_NODES: usize = 6;
 /// The cheap Arnoldi product is used only when its error on a solution-like vector is at most this many
 /// times the fitting accuracy (docs/decisions/0043-arnoldi-product-accuracy.md).
 const CHEAP_PRODUCT_MAX_ERROR_RATIO: f64 = 4.0;
@@ -151,8 +155,8 @@ pub(crate) struct Solution {
 /// already at least as cheap.
 pub(crate) fn inner_params(outer: TreecodeParams) -> Option<TreecodeParams> {
     let inner = TreecodeParams {
-        theta: outer.theta.max(0.7),
-        nodes_per_side: outer.nodes_per_side.min(6),
+        theta: outer.theta.max(CHEAP_PRODUCT_THETA),
+        nodes_per_side: outer.nodes_per_side.min(CHEAP_PRODUCT_NODES),
         ..outer
     };
     (inner != outer).then_some(inner)
