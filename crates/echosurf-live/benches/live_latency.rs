@@ -1,23 +1,26 @@
 //! Latency of the live surface on the demo's sweep (the simulated duck, seed 1, 180 frames): the frames
 //! go through the codec (encode, read, decode) into a session as they would arrive; after every
-//! `--update-every` (30) frames the update surface is timed, and after the last frame the final mesh
-//! (`extract`'s defaults). Run: `cargo bench -p echosurf-live --bench live_latency`
-//! (env `LIVE_UPDATE_SAMPLES` sets the update's sample budget, default 10000, and
+//! `--update-every` (30) frames the update surface is timed, then the new frames' echo crests as the
+//! client's worker finds them; after the last frame the final mesh (`extract`'s defaults, reading those
+//! crests), beside `extract` from scratch before and after it (the same mesh, asserted).
+//! Run: `cargo bench -p echosurf-live --bench live_latency` (env `LIVE_UPDATE_SAMPLES` sets the update's sample budget, default 10000, and
 //! `LIVE_UPDATE_RESOLUTION_MM` its surfacer lattice, default 1).
 //! The targets it reports against (issue #30): an update within 1 s after each 30 new frames, the final
 //! mesh within 2 s of the last frame. It also prints the final `extract`'s stage times, and the final
 //! beside the last update still running (left to finish, or abandoned as the client does), with how
 //! long that update went on into the final.
 
+use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use echosurf::io::{ReferenceChoice, resolve_poses};
-use echosurf::pipeline::ExtractOptions;
+use echosurf::pipeline::{ExtractOptions, Reused, extract_reusing};
 use echosurf::progress::NoProgress;
+use echosurf::segment::crests::CrestCache;
 use echosurf_live::codec::{self, Image, Limits, encode_message};
 use echosurf_live::session::{
-    IncrementalBands, LiveSession, SessionOptions, update_extract_options, update_surface,
-    update_surface_unless_stopped,
+    IncrementalBands, LiveSession, SessionOptions, add_echo_crests, update_extract_options,
+    update_surface, update_surface_unless_stopped,
 };
 use echosurf_sim::{SimulationOptions, simulate};
 
@@ -55,6 +58,8 @@ fn main() {
     let update_options = update_extract_options(samples, resolution_mm);
     let mut bands = IncrementalBands::default();
     let mut bands_before_last = IncrementalBands::default();
+    let mut crests = CrestCache::default();
+    let mut worst_crests_s = 0.0f64;
     let mut receive_s = 0.0f64;
     let mut worst_update_s = 0.0f64;
     println!(
@@ -87,8 +92,20 @@ fn main() {
                 .expect("update");
             let s = start.elapsed().as_secs_f64();
             worst_update_s = worst_update_s.max(s);
+            // Then, as the client's worker does, the new frames' echo crests for the final mesh.
+            let start = Instant::now();
+            add_echo_crests(
+                &snapshot,
+                calibration,
+                &ExtractOptions::default(),
+                &mut crests,
+                &AtomicBool::new(false),
+            )
+            .expect("crests");
+            let crests_s = start.elapsed().as_secs_f64();
+            worst_crests_s = worst_crests_s.max(crests_s);
             println!(
-                "  update at {:>3} frames: {:>6} triangles in {s:.3} s",
+                "  update at {:>3} frames: {:>6} triangles in {s:.3} s, then the new frames' crests in {crests_s:.3} s",
                 snapshot.frames.len(),
                 mesh.triangles.len()
             );
@@ -96,18 +113,51 @@ fn main() {
     }
     let recorded = session.sequence();
     let update_options = &update_options;
+    // The client's final mesh: `extract`, with the crests the worker found during the sweep (a fresh
+    // copy each time, as the sweep left them).
     let final_extract = || {
-        echosurf::pipeline::extract(
+        let mut found = crests.clone();
+        let reused = Reused {
+            masks: None,
+            crests: Some(&mut found),
+        };
+        extract_reusing(
             recorded,
             Some(calibration),
             &ExtractOptions::default(),
+            reused,
             &NoProgress,
         )
         .expect("final")
     };
+    // Before/after in one run: `extract` finding every frame's crests itself.
+    let start = Instant::now();
+    let from_scratch = echosurf::pipeline::extract(
+        recorded,
+        Some(calibration),
+        &ExtractOptions::default(),
+        &NoProgress,
+    )
+    .expect("final from scratch");
+    let from_scratch_s = start.elapsed().as_secs_f64();
     let start = Instant::now();
     let final_output = final_extract();
     let final_s = start.elapsed().as_secs_f64();
+    // Once more from scratch, after: the machine's drift falls on both sides.
+    let start = Instant::now();
+    let _ = echosurf::pipeline::extract(
+        recorded,
+        Some(calibration),
+        &ExtractOptions::default(),
+        &NoProgress,
+    )
+    .expect("final from scratch");
+    let from_scratch_after_s = start.elapsed().as_secs_f64();
+    assert_eq!(
+        from_scratch.surfaces.first().map(|s| &s.mesh),
+        final_output.surfaces.first().map(|s| &s.mesh),
+        "the final mesh with the sweep's crests is extract's"
+    );
     // The client's case: the last update (its bands as before it) is still running when the sweep
     // ends. Left to finish, it shares the cores with the final mesh; stopped, it is abandoned.
     // Returns the final's time and how long the update went on beside it.
@@ -167,6 +217,12 @@ fn main() {
         if final_s <= 2.0 { "met" } else { "NOT met" }
     );
     println!("  final mesh stages: {}", stages.join(", "));
+    println!(
+        "  the same mesh by `extract` finding every frame's crests itself: {from_scratch_s:.3} s before, \
+         {from_scratch_after_s:.3} s after; \
+         the crests of {} frames were found during the sweep (slowest batch {worst_crests_s:.3} s)",
+        crests.frames()
+    );
     println!(
         "  final mesh with the last update still running: {:.3} s if it finishes (it ran on {:.3} s \
          into the final), {:.3} s if it is abandoned (the client's way; it ended {:.3} s into the final)",

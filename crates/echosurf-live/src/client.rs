@@ -7,18 +7,20 @@
 use std::io::Write;
 use std::net::{Shutdown, TcpListener, TcpStream, ToSocketAddrs};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use echosurf::io::{Calibration, TrackedSequence};
 use echosurf::mesh::Mesh;
 use echosurf::pipeline::ExtractOptions;
+use echosurf::segment::crests::CrestCache;
 
 use crate::codec::{self, CodecError, Limits, encode_message, encode_polydata};
 use crate::session::{
-    IncrementalBands, LiveSession, SessionOptions, surface_of, update_surface_unless_stopped,
+    IncrementalBands, LiveSession, SessionOptions, add_echo_crests, surface_of_reusing,
+    update_surface_unless_stopped,
 };
 
 /// Device name of the surface sent back.
@@ -162,7 +164,14 @@ struct Worker {
     stop: Arc<AtomicBool>,
 }
 
-fn start_worker(calibration: Calibration, options: ExtractOptions) -> Worker {
+/// The update worker: each job is an update of the surface, then the echo crests of the new frames as
+/// the final mesh (`final_options`) reads them, into `crests`.
+fn start_worker(
+    calibration: Calibration,
+    options: ExtractOptions,
+    final_options: ExtractOptions,
+    crests: Arc<Mutex<CrestCache>>,
+) -> Worker {
     let (jobs, job_rx) = mpsc::sync_channel::<(TrackedSequence, Instant)>(1);
     let (result_tx, results) = mpsc::channel();
     let stop = Arc::new(AtomicBool::new(false));
@@ -185,6 +194,16 @@ fn start_worker(calibration: Calibration, options: ExtractOptions) -> Worker {
                 .is_err()
             {
                 return;
+            }
+            // A failure here is the final mesh's to report (it finds the crests itself then).
+            if let Ok(mut crests) = crests.lock() {
+                let _ = add_echo_crests(
+                    &sequence,
+                    &calibration,
+                    &final_options,
+                    &mut crests,
+                    &stop_seen,
+                );
             }
         }
     });
@@ -324,7 +343,17 @@ pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
         eprintln!("warning: {w}");
         all.push(w);
     };
-    let mut worker = start_worker(options.calibration.clone(), options.update_extract.clone());
+    // The frames' echo crests for the final mesh, found by the worker after its updates.
+    let crests = Arc::new(Mutex::new(CrestCache::default()));
+    let new_worker = || {
+        start_worker(
+            options.calibration.clone(),
+            options.update_extract.clone(),
+            options.final_extract.clone(),
+            Arc::clone(&crests),
+        )
+    };
+    let mut worker = new_worker();
     let mut updates = Vec::new();
     let mut connections = 0;
     let mut message_id = 0u32;
@@ -393,10 +422,7 @@ pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
                     Err(TrySendError::Full(_)) => {}
                     Err(TrySendError::Disconnected(_)) => {
                         warn("the surface worker stopped".into(), &mut warnings);
-                        worker = start_worker(
-                            options.calibration.clone(),
-                            options.update_extract.clone(),
-                        );
+                        worker = new_worker();
                     }
                 }
             }
@@ -459,11 +485,16 @@ pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
     for w in session.finish() {
         warn(w, &mut warnings);
     }
+    // The worker lets go of the crests within a few frames once stopped; a worker that panicked
+    // holding them leaves them as they were (each frame's crests are added whole).
+    let mut crests = crests
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
     let summary = finish(
         options,
         &mut session,
-        &sequence_path,
-        &mesh_path,
+        (&sequence_path, &mesh_path),
+        &mut crests,
         last_frame_at,
         &mut warnings,
     )?;
@@ -493,8 +524,8 @@ pub fn run(options: &LiveOptions) -> echosurf::Result<LiveSummary> {
 fn finish(
     options: &LiveOptions,
     session: &mut LiveSession,
-    sequence_path: &Path,
-    mesh_path: &Path,
+    (sequence_path, mesh_path): (&Path, &Path),
+    crests: &mut CrestCache,
     last_frame_at: Instant,
     warnings: &mut Vec<String>,
 ) -> echosurf::Result<(Mesh, f64)> {
@@ -506,7 +537,13 @@ fn finish(
         )));
     }
     echosurf::io::write_sequence(sequence_path, sequence, false)?;
-    let mesh = match surface_of(sequence, &options.calibration, &options.final_extract) {
+    let final_mesh = surface_of_reusing(
+        sequence,
+        &options.calibration,
+        &options.final_extract,
+        crests,
+    );
+    let mesh = match final_mesh {
         Ok(mesh) => {
             // Tagged SPACE=RAS as `extract` writes by default (the Reference numbers unchanged).
             echosurf::io::write_mesh_in(mesh_path, &mesh, echosurf::io::Space::Ras)?;

@@ -16,6 +16,7 @@ use echosurf::io::{
 use echosurf::mesh::Mesh;
 use echosurf::pipeline::{self, ExtractOptions};
 use echosurf::progress::{NoProgress, Progress};
+use echosurf::segment::crests::CrestCache;
 use echosurf::segment::{BandMasks, segment_sequence};
 
 use crate::codec::{Decoded, Image, Message, SCALAR_UINT8, STATUS_OK};
@@ -338,17 +339,56 @@ pub fn surface_of(
     calibration: &Calibration,
     options: &ExtractOptions,
 ) -> echosurf::Result<Mesh> {
-    surface_with(sequence, calibration, options, &NoProgress)
+    surface_with(sequence, calibration, options, None, &NoProgress)
 }
 
-/// [`surface_of`], reporting to `progress`.
+/// [`surface_of`], taking the frames' echo crests from `crests` where it holds them (found during the
+/// sweep by [`add_echo_crests`]) and adding the others: the same mesh, with less left to do after the
+/// last frame.
+pub fn surface_of_reusing(
+    sequence: &TrackedSequence,
+    calibration: &Calibration,
+    options: &ExtractOptions,
+    crests: &mut CrestCache,
+) -> echosurf::Result<Mesh> {
+    surface_with(sequence, calibration, options, Some(crests), &NoProgress)
+}
+
+/// Frames whose echo crests [`add_echo_crests`] finds between two looks at its stop flag.
+pub const CREST_FRAMES_PER_STEP: usize = 8;
+
+/// Adds to `crests` the echo crests of the recorded frames it lacks, as the final mesh (made with
+/// `options`) reads them, until `stop` is set (checked every [`CREST_FRAMES_PER_STEP`] frames).
+pub fn add_echo_crests(
+    sequence: &TrackedSequence,
+    calibration: &Calibration,
+    options: &ExtractOptions,
+    crests: &mut CrestCache,
+    stop: &AtomicBool,
+) -> echosurf::Result<()> {
+    pipeline::add_echo_crests(
+        sequence,
+        Some(calibration),
+        options,
+        crests,
+        CREST_FRAMES_PER_STEP,
+        &|| !stop.load(Ordering::Relaxed),
+    )
+}
+
+/// [`surface_of`], reporting to `progress`, reusing `crests` when given.
 fn surface_with(
     sequence: &TrackedSequence,
     calibration: &Calibration,
     options: &ExtractOptions,
+    crests: Option<&mut CrestCache>,
     progress: &dyn Progress,
 ) -> echosurf::Result<Mesh> {
-    let output = pipeline::extract(sequence, Some(calibration), options, progress)?;
+    let reused = pipeline::Reused {
+        masks: None,
+        crests,
+    };
+    let output = pipeline::extract_reusing(sequence, Some(calibration), options, reused, progress)?;
     Ok(first_mesh(output))
 }
 
@@ -473,7 +513,7 @@ fn update_surface_with(
     let masks = bands.extend(sequence, calibration, options);
     progress.finish();
     let Some(masks) = masks else {
-        return surface_with(sequence, calibration, options, progress);
+        return surface_with(sequence, calibration, options, None, progress);
     };
     let output =
         pipeline::extract_with_masks(sequence, Some(calibration), options, masks, progress)?;
@@ -829,5 +869,76 @@ mod tests {
         assert_eq!(fresh.frames(), 0);
         let again = update_surface(&mut fresh, sequence, calibration, &options).unwrap();
         assert_eq!(again, plain);
+    }
+
+    /// The first `n` frames of `sequence`, as the recording stood then.
+    fn prefix_of(sequence: &TrackedSequence, n: usize) -> TrackedSequence {
+        let mut s = sequence.clone();
+        s.frames.truncate(n);
+        let PixelData::U8(p) = &mut s.pixels else {
+            panic!("8-bit frames")
+        };
+        p.truncate(n * sequence.frame_len());
+        s
+    }
+
+    /// Echo crests found batch by batch as the recording grows make the final mesh `extract` makes
+    /// from scratch, byte for byte; with the stop flag set, nothing is found.
+    #[test]
+    fn crests_found_during_the_sweep_give_extracts_final_mesh() {
+        let sim = small_sphere();
+        let (sequence, calibration) = (&sim.sequence, &sim.calibration_written);
+        let options = ExtractOptions::default();
+        let going = AtomicBool::new(false);
+        let mut crests = CrestCache::default();
+        add_echo_crests(
+            &prefix_of(sequence, 8),
+            calibration,
+            &options,
+            &mut crests,
+            &AtomicBool::new(true),
+        )
+        .unwrap();
+        assert_eq!(crests.frames(), 0, "stopped before the first frames");
+        for n in [8, 14] {
+            add_echo_crests(
+                &prefix_of(sequence, n),
+                calibration,
+                &options,
+                &mut crests,
+                &going,
+            )
+            .unwrap();
+            assert_eq!(crests.frames(), n);
+        }
+        let reused = pipeline::Reused {
+            masks: None,
+            crests: Some(&mut crests),
+        };
+        let final_output =
+            pipeline::extract_reusing(sequence, Some(calibration), &options, reused, &NoProgress)
+                .unwrap();
+        assert_eq!(crests.frames(), 20, "the last frames' crests were added");
+        let from_scratch =
+            pipeline::extract(sequence, Some(calibration), &options, &NoProgress).unwrap();
+        assert!(
+            final_output.report.sheets[0].crests_linked > 0,
+            "the final mesh reads the frames' crests: {:?}",
+            final_output.report.sheets
+        );
+        assert!(!final_output.surfaces[0].mesh.triangles.is_empty());
+        assert_eq!(final_output.surfaces[0].mesh, from_scratch.surfaces[0].mesh);
+        assert_eq!(
+            final_output.report.sheets[0].crests_linked,
+            from_scratch.report.sheets[0].crests_linked
+        );
+        // The iso-surface reads no crests: nothing is found for it.
+        let iso = ExtractOptions {
+            sheet: pipeline::Sheet::Iso,
+            ..ExtractOptions::default()
+        };
+        let mut none = CrestCache::default();
+        add_echo_crests(sequence, calibration, &iso, &mut none, &going).unwrap();
+        assert_eq!(none.frames(), 0);
     }
 }

@@ -16,6 +16,7 @@ use crate::samples::{
     IntensityLevels, SampleSet, collect_samples_binned_with_cells, estimate_echo_levels,
     estimate_levels, near_echo_flags, priority_decimate, random_decimate,
 };
+use crate::segment::crests::{CrestCache, crest_crop};
 use crate::segment::{
     BandMasks, InitialBand, ResolvedParameters, SegmentOptions, segment_sequence,
 };
@@ -52,15 +53,7 @@ pub fn extract(
     options: &ExtractOptions,
     progress: &dyn Progress,
 ) -> Result<ExtractOutput> {
-    if let Method::Voxel(route) = &options.method {
-        return voxel_route::extract_voxel(sequence, calibration, options, route, progress);
-    }
-    if let Some(budget) = options.memory_budget_bytes {
-        crate::budget::check_extract_budget(sequence, budget, progress)?;
-    }
-    let mut meter = StageMeter::new(progress);
-    let prepared = prepare_samples(sequence, calibration, options, &mut meter, progress)?;
-    extract_from_prepared(sequence, calibration, options, meter, prepared, progress)
+    extract_reusing(sequence, calibration, options, Reused::default(), progress)
 }
 
 /// [`extract`] on bands segmented elsewhere (`masks`: one per frame of `sequence`, as
@@ -73,18 +66,104 @@ pub fn extract_with_masks(
     masks: BandMasks,
     progress: &dyn Progress,
 ) -> Result<ExtractOutput> {
-    if masks.masks.len() != sequence.frames.len() {
-        return Err(Error::InvalidInput(format!(
-            "{} band masks for {} frames",
-            masks.masks.len(),
-            sequence.frames.len()
-        )));
-    }
+    let reused = Reused {
+        masks: Some(masks),
+        crests: None,
+    };
+    extract_reusing(sequence, calibration, options, reused, progress)
+}
+
+/// What earlier work on the same recording (one that only grows, as `live` records it) hands to
+/// [`extract_reusing`].
+#[derive(Debug, Default)]
+pub struct Reused<'a> {
+    /// Bands segmented elsewhere, one per frame (see [`extract_with_masks`]).
+    pub masks: Option<BandMasks>,
+    /// The frames' echo crests found so far: the frames not in it are added, and the mesh is the
+    /// one [`extract`] makes.
+    pub crests: Option<&'a mut CrestCache>,
+}
+
+/// [`extract`], reusing what `reused` holds. With masks: the RBF route only, no memory budget check.
+pub fn extract_reusing(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+    options: &ExtractOptions,
+    reused: Reused,
+    progress: &dyn Progress,
+) -> Result<ExtractOutput> {
     let mut meter = StageMeter::new(progress);
-    let poses = place_frames(sequence, calibration, options, &mut meter)?;
-    let prepared =
-        prepare_samples_from_masks(sequence, calibration, options, &mut meter, poses, masks)?;
-    extract_from_prepared(sequence, calibration, options, meter, prepared, progress)
+    let prepared = match reused.masks {
+        None => {
+            if let Method::Voxel(route) = &options.method {
+                return voxel_route::extract_voxel(sequence, calibration, options, route, progress);
+            }
+            if let Some(budget) = options.memory_budget_bytes {
+                crate::budget::check_extract_budget(sequence, budget, progress)?;
+            }
+            prepare_samples(sequence, calibration, options, &mut meter, progress)?
+        }
+        Some(masks) => {
+            if masks.masks.len() != sequence.frames.len() {
+                return Err(Error::InvalidInput(format!(
+                    "{} band masks for {} frames",
+                    masks.masks.len(),
+                    sequence.frames.len()
+                )));
+            }
+            let poses = place_frames(sequence, calibration, options, &mut meter)?;
+            prepare_samples_from_masks(sequence, calibration, options, &mut meter, poses, masks)?
+        }
+    };
+    let mut own_crests = CrestCache::default();
+    let crests = reused.crests.unwrap_or(&mut own_crests);
+    extract_from_prepared(
+        sequence,
+        calibration,
+        options,
+        meter,
+        prepared,
+        crests,
+        progress,
+    )
+}
+
+/// Adds to `cache` the echo crests of the frames of `sequence` it lacks, as [`extract_reusing`] with
+/// `options` reads them, `step` frames at a time while `go_on()` holds; nothing when `options` read no
+/// crests (the iso-surface, crests off, the voxel route). For a recording that grows (`live`): the final
+/// mesh then reads only the frames that came after.
+pub fn add_echo_crests(
+    sequence: &TrackedSequence,
+    calibration: Option<&Calibration>,
+    options: &ExtractOptions,
+    cache: &mut CrestCache,
+    step: usize,
+    go_on: &dyn Fn() -> bool,
+) -> Result<()> {
+    if options.sheet == Sheet::Iso
+        || !options.image_crests.enabled
+        || matches!(options.method, Method::Voxel(_))
+    {
+        return Ok(());
+    }
+    options.image_crests.crest.validate()?;
+    let poses = resolve_poses(
+        sequence,
+        calibration,
+        options.reference,
+        std::path::Path::new("<sequence>"),
+    )?;
+    let clip = calibration.and_then(|c| c.clip);
+    let Some(crop) = crest_crop(sequence, &poses, clip, options.segment.detect_data_region) else {
+        return Ok(());
+    };
+    for frames in poses.poses.chunks(step.max(1)) {
+        if !go_on() {
+            break;
+        }
+        cache.fill(sequence, frames, crop, &options.image_crests.crest);
+    }
+    Ok(())
 }
 
 /// The RBF route after the samples: fit, surface, sheets and pieces, and the report.
@@ -94,6 +173,7 @@ fn extract_from_prepared(
     options: &ExtractOptions,
     mut meter: StageMeter,
     prepared: PreparedSamples,
+    crest_cache: &mut CrestCache,
     progress: &dyn Progress,
 ) -> Result<ExtractOutput> {
     let mut warnings = prepared.masks.warnings.clone();
@@ -199,6 +279,7 @@ fn extract_from_prepared(
                 calibration.and_then(|c| c.clip),
                 options.segment.detect_data_region,
                 &options.image_crests,
+                crest_cache,
             )
         })?)
     } else {

@@ -2,7 +2,7 @@
 //! and removing and joining pieces.
 
 use crate::io::ClipRect;
-use crate::segment::crests::echo_crests;
+use crate::segment::crests::{CrestCache, echo_crests_reusing};
 use crate::surface::{
     CrestLink, OrientedPoints, PlacedCrest, add_linked_crests, keep_pieces_reaching, orient_crests,
 };
@@ -216,7 +216,7 @@ pub(super) struct CrestExtension<'a> {
     pub(super) surface_options: &'a SurfaceOptions,
 }
 
-/// The echo crests of every placed frame ([`echo_crests`]) in world mm, with normals across their
+/// The echo crests of every placed frame ([`crate::segment::crests::echo_crests`], those not in `cache` added to it) in world mm, with normals across their
 /// chains tilted by the neighbouring frames ([`orient_crests`]), inside the clip rectangle and, as the
 /// segmentation has it, the frames' data region.
 pub(super) fn oriented_echo_crests(
@@ -225,8 +225,16 @@ pub(super) fn oriented_echo_crests(
     clip: Option<ClipRect>,
     detect_data_region: bool,
     options: &ImageCrests,
+    cache: &mut CrestCache,
 ) -> Result<OrientedPoints> {
-    let frames = echo_crests(sequence, poses, clip, detect_data_region, &options.crest)?;
+    let frames = echo_crests_reusing(
+        sequence,
+        poses,
+        clip,
+        detect_data_region,
+        &options.crest,
+        cache,
+    )?;
     let mut placed = Vec::new();
     for (k, frame) in frames.iter().enumerate() {
         let m = frame.image_to_world;

@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use super::crop::{effective_clip, load_grey_crop};
 use super::filters::{gaussian_taps, smooth};
-use crate::io::{ClipRect, PoseResolution, TrackedSequence};
+use crate::io::{ClipRect, FramePose, PoseResolution, TrackedSequence};
 use crate::{Error, Result};
 
 /// Which maxima across an echo line count as echo crests ([`echo_crests`]).
@@ -128,49 +128,139 @@ pub fn echo_crests(
     detect_data_region: bool,
     options: &CrestOptions,
 ) -> Result<Vec<FrameCrests>> {
+    echo_crests_reusing(
+        sequence,
+        poses,
+        clip,
+        detect_data_region,
+        options,
+        &mut CrestCache::default(),
+    )
+}
+
+/// [`echo_crests`], taking the crests of frames already in `cache` from there and adding the others
+/// to it: what [`echo_crests`] gives, when `cache` was only ever filled from this recording (frames
+/// may have been added since, but a frame's pixels never change).
+pub fn echo_crests_reusing(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    clip: Option<ClipRect>,
+    detect_data_region: bool,
+    options: &CrestOptions,
+    cache: &mut CrestCache,
+) -> Result<Vec<FrameCrests>> {
     options.validate()?;
-    let Some(mut clip) = effective_clip(clip, sequence.width, sequence.height) else {
+    let Some(crop) = crest_crop(sequence, poses, clip, detect_data_region) else {
         return Ok(Vec::new());
     };
-    if detect_data_region {
-        // All frames black: no crest anywhere.
-        let Some(region) = super::data_region(sequence, poses, clip) else {
-            return Ok(Vec::new());
-        };
-        clip = region;
-    }
+    cache.fill(sequence, &poses.poses, crop, options);
     Ok(poses
         .poses
-        .par_iter()
-        .map(|pose| {
-            let m = pose.image_to_world;
-            let pixel_mm = [m.x_axis.truncate().length(), m.y_axis.truncate().length()];
-            let (mut grey, mut tmp, mut smoothed) = (Vec::new(), Vec::new(), Vec::new());
-            load_grey_crop(sequence, pose.frame_index, clip, &mut grey);
-            let [w, h] = clip.size_px;
-            smooth(
-                &grey,
-                w,
-                h,
-                &gaussian_taps(options.smoothing_mm / pixel_mm[1]),
-                &mut tmp,
-                &mut smoothed,
-            );
-            let [u0, v0] = clip.origin_px.map(|x| x as f64);
-            FrameCrests {
-                frame_index: pose.frame_index,
-                image_to_world: m,
-                crests: crests_in_image(&smoothed, w, h, pixel_mm, options)
-                    .into_iter()
-                    .map(|c| ImageCrest {
-                        column: c.column + u0,
-                        row: c.row + v0,
-                        ..c
-                    })
-                    .collect(),
-            }
-        })
+        .iter()
+        .map(|pose| cache.frames[&pose.frame_index].clone())
         .collect())
+}
+
+/// The part of the frames [`echo_crests`] reads: `clip` (the whole frame without one), narrowed to the
+/// frames' data region with `detect_data_region`; `None` when nothing is left (every frame black).
+pub fn crest_crop(
+    sequence: &TrackedSequence,
+    poses: &PoseResolution,
+    clip: Option<ClipRect>,
+    detect_data_region: bool,
+) -> Option<ClipRect> {
+    let clip = effective_clip(clip, sequence.width, sequence.height)?;
+    if detect_data_region {
+        super::data_region(sequence, poses, clip)
+    } else {
+        Some(clip)
+    }
+}
+
+/// The crests of the frames of one recording found so far, so that a recording that grows (`live`)
+/// reads each frame once. A frame's crests depend only on its pixels, its pose, the crop and the
+/// options; the cache keeps the crop and options they were found with and starts afresh when either
+/// changes, and finds a frame again when its pose changed.
+#[derive(Debug, Clone, Default)]
+pub struct CrestCache {
+    crop: Option<ClipRect>,
+    options: Option<CrestOptions>,
+    frames: std::collections::BTreeMap<usize, FrameCrests>,
+}
+
+impl CrestCache {
+    /// Frames whose crests are held.
+    pub fn frames(&self) -> usize {
+        self.frames.len()
+    }
+
+    /// Finds the crests of the frames of `poses` not held yet (inside `crop`, with `options`,
+    /// which must be valid), in parallel.
+    pub fn fill(
+        &mut self,
+        sequence: &TrackedSequence,
+        poses: &[FramePose],
+        crop: ClipRect,
+        options: &CrestOptions,
+    ) {
+        if self.crop != Some(crop) || self.options.as_ref() != Some(options) {
+            *self = CrestCache {
+                crop: Some(crop),
+                options: Some(options.clone()),
+                frames: Default::default(),
+            };
+        }
+        let missing: Vec<&FramePose> = poses
+            .iter()
+            .filter(|pose| {
+                self.frames
+                    .get(&pose.frame_index)
+                    .is_none_or(|held| held.image_to_world != pose.image_to_world)
+            })
+            .collect();
+        let found: Vec<FrameCrests> = missing
+            .par_iter()
+            .map(|pose| frame_crests(sequence, pose, crop, options))
+            .collect();
+        for f in found {
+            self.frames.insert(f.frame_index, f);
+        }
+    }
+}
+
+/// One frame's crests inside `crop`.
+fn frame_crests(
+    sequence: &TrackedSequence,
+    pose: &FramePose,
+    crop: ClipRect,
+    options: &CrestOptions,
+) -> FrameCrests {
+    let m = pose.image_to_world;
+    let pixel_mm = [m.x_axis.truncate().length(), m.y_axis.truncate().length()];
+    let (mut grey, mut tmp, mut smoothed) = (Vec::new(), Vec::new(), Vec::new());
+    load_grey_crop(sequence, pose.frame_index, crop, &mut grey);
+    let [w, h] = crop.size_px;
+    smooth(
+        &grey,
+        w,
+        h,
+        &gaussian_taps(options.smoothing_mm / pixel_mm[1]),
+        &mut tmp,
+        &mut smoothed,
+    );
+    let [u0, v0] = crop.origin_px.map(|x| x as f64);
+    FrameCrests {
+        frame_index: pose.frame_index,
+        image_to_world: m,
+        crests: crests_in_image(&smoothed, w, h, pixel_mm, options)
+            .into_iter()
+            .map(|c| ImageCrest {
+                column: c.column + u0,
+                row: c.row + v0,
+                ..c
+            })
+            .collect(),
+    }
 }
 
 /// The crests of one smoothed image (`w` x `h`, pixels `pixel_mm` wide and high), row-major order.
@@ -806,5 +896,54 @@ mod tests {
         };
         assert!(nan.validate().is_err());
         assert!(CrestOptions::default().validate().is_ok());
+    }
+
+    /// The cache gives what a fresh search gives: filled over a growing recording, after a pose
+    /// changed (that frame is searched again) and after the crop changed (all are).
+    #[test]
+    fn crests_from_the_cache_are_those_of_a_fresh_search() {
+        let sweep = crate::segment::synthetic::synthetic_sweep(90, 70, 12, 0.2, 0.4, 5);
+        let (sequence, poses) = (&sweep.sequence, &sweep.poses);
+        let options = CrestOptions::default();
+        let fresh = echo_crests(sequence, poses, None, false, &options).unwrap();
+        assert!(
+            fresh.iter().all(|f| !f.crests.is_empty()),
+            "an echo in every frame"
+        );
+        let mut cache = CrestCache::default();
+        let first_half = PoseResolution {
+            poses: poses.poses[..6].to_vec(),
+            ..poses.clone()
+        };
+        let half = echo_crests_reusing(sequence, &first_half, None, false, &options, &mut cache);
+        assert_eq!(half.unwrap()[..], fresh[..6]);
+        assert_eq!(cache.frames(), 6);
+        let all = echo_crests_reusing(sequence, poses, None, false, &options, &mut cache).unwrap();
+        assert_eq!(all, fresh);
+        assert_eq!(cache.frames(), 12);
+
+        // Frame 3 moved: its crests are placed by its new pose.
+        let mut moved = poses.clone();
+        moved.poses[3].image_to_world *= DMat4::from_scale(glam::DVec3::splat(1.5));
+        let refound =
+            echo_crests_reusing(sequence, &moved, None, false, &options, &mut cache).unwrap();
+        assert_eq!(
+            refound,
+            echo_crests(sequence, &moved, None, false, &options).unwrap()
+        );
+        assert_ne!(refound[3], fresh[3]);
+
+        // A narrower crop: every frame is searched again inside it.
+        let crop = ClipRect {
+            origin_px: [10, 5],
+            size_px: [60, 60],
+        };
+        let cropped =
+            echo_crests_reusing(sequence, poses, Some(crop), false, &options, &mut cache).unwrap();
+        assert_eq!(
+            cropped,
+            echo_crests(sequence, poses, Some(crop), false, &options).unwrap()
+        );
+        assert_ne!(cropped, fresh);
     }
 }
