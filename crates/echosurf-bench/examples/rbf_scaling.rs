@@ -2,7 +2,7 @@
 //! Environment: `SOLVER` = auto (default) | fast | pu | direct, `W`, `ACC`, `EPS`, `LEAF`, `OVERLAP`, `MINOV`.
 
 use echosurf::rbf::{FitOptions, SolverChoice};
-use echosurf_bench::bench_fit_scaling;
+use echosurf_bench::{ScalingSamples, bench_fit_scaling};
 
 fn main() -> echosurf::Result<()> {
     let sizes: Vec<usize> = std::env::args()
@@ -48,7 +48,7 @@ fn main() -> echosurf::Result<()> {
         ..FitOptions::default()
     };
     println!("threads {}", rayon::current_num_threads());
-    for row in bench_fit_scaling(&sizes, &options, 1)? {
+    for row in bench_fit_scaling(&sizes, &options, 1, ScalingSamples::Synthetic)? {
         println!("{}", serde_json::to_string(&row).expect("serialisable"));
     }
     Ok(())

@@ -23,6 +23,15 @@ pub fn band_pixels(
     count: usize,
     seed: u64,
 ) -> (Vec<DVec3>, Vec<f64>) {
+    let (points, values) = all_band_pixels(sequence, image_to_world);
+    random_subset(points, values, count, seed)
+}
+
+/// Every band pixel of [`band_pixels`]' rule (no subset), frame by frame in `image_to_world` order.
+pub fn all_band_pixels(
+    sequence: &echosurf::io::TrackedSequence,
+    image_to_world: &[(usize, glam::DMat4)],
+) -> (Vec<DVec3>, Vec<f64>) {
     use echosurf::segment::filters::{gaussian_taps, smooth, squared_distance_capped};
     let (w, h) = (sequence.width, sequence.height);
     let taps = gaussian_taps(BAND_SMOOTHING_SIGMA_PX);
@@ -58,6 +67,17 @@ pub fn band_pixels(
             }
         }
     }
+    (points, values)
+}
+
+/// A random subset of `count` of the points with their values (all when fewer), in their order;
+/// same inputs and seed, same subset.
+pub fn random_subset(
+    mut points: Vec<DVec3>,
+    mut values: Vec<f64>,
+    count: usize,
+    seed: u64,
+) -> (Vec<DVec3>, Vec<f64>) {
     if points.len() > count {
         let mut order: Vec<usize> = (0..points.len()).collect();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);

@@ -1,10 +1,48 @@
-//! The fit's cost against the number of samples: fit and evaluation times of ultrasound-like samples.
+//! The fit's cost against the number of samples: fit and evaluation times of ultrasound-like samples,
+//! or of a sweep's band pixels.
 
 use echosurf::rbf::{FastBreakdown, FitOptions, SolverChoice, fit, ultrasound_like_samples};
+use glam::DVec3;
+
+use crate::band_pixels::random_subset;
+
+/// Where the fit-scaling samples come from.
+#[derive(Debug, Clone, Copy)]
+pub enum ScalingSamples<'a> {
+    /// [`ultrasound_like_samples`] of each size; the evaluation points are another draw.
+    Synthetic,
+    /// Random subsets of a sweep's band pixels ([`crate::all_band_pixels`]); the evaluation points
+    /// are another subset. Sizes beyond the pixels there are are skipped.
+    BandPixels {
+        name: &'a str,
+        points: &'a [DVec3],
+        values: &'a [f64],
+    },
+}
+
+impl ScalingSamples<'_> {
+    fn name(&self) -> &str {
+        match self {
+            ScalingSamples::Synthetic => "synthetic",
+            ScalingSamples::BandPixels { name, .. } => name,
+        }
+    }
+
+    /// `n` samples and their values, or None when there are fewer.
+    fn draw(&self, n: usize, seed: u64) -> Option<(Vec<DVec3>, Vec<f64>)> {
+        match self {
+            ScalingSamples::Synthetic => Some(ultrasound_like_samples(n, seed)),
+            ScalingSamples::BandPixels { points, values, .. } => (points.len() >= n)
+                .then(|| random_subset(points.to_vec(), values.to_vec(), n, seed)),
+        }
+    }
+}
 
 /// One row of [`bench_fit_scaling`].
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ScalingRow {
+    /// "synthetic", or the name of the sweep whose band pixels were fitted.
+    pub samples_from: String,
     pub samples: usize,
     pub fit_seconds: f64,
     pub iterations: usize,
@@ -21,22 +59,28 @@ pub struct ScalingRow {
     pub fast_breakdown: Option<FastBreakdown>,
 }
 
-/// Fits [`ultrasound_like_samples`] of each size with `options` and times fit and evaluation.
+/// Fits `source`'s samples of each size with `options` and times fit and evaluation.
 pub fn bench_fit_scaling(
     sizes: &[usize],
     options: &FitOptions,
     seed: u64,
+    source: ScalingSamples,
 ) -> echosurf::Result<Vec<ScalingRow>> {
     let mut rows = Vec::new();
     for &n in sizes {
-        let (points, values) = ultrasound_like_samples(n, seed);
+        let Some((points, values)) = source.draw(n, seed) else {
+            continue;
+        };
         let (model, report) = fit(&points, &values, options, &echosurf::progress::NoProgress)?;
-        let (probes, _) = ultrasound_like_samples(n, seed.wrapping_add(1));
+        let (probes, _) = source
+            .draw(n, seed.wrapping_add(1))
+            .expect("as many samples as the fit's");
         let start = std::time::Instant::now();
         let (v, _) = model.values_and_gradients(&probes);
         let eval_seconds = start.elapsed().as_secs_f64();
         debug_assert_eq!(v.len(), n);
         rows.push(ScalingRow {
+            samples_from: source.name().to_string(),
             samples: n,
             fit_seconds: report.fit_seconds,
             iterations: report.iterations,

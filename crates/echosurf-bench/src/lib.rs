@@ -14,13 +14,13 @@ pub mod scoring;
 pub mod svg;
 
 pub use band_pixels::{
-    BAND_DILATION_PX, BAND_SMOOTHING_SIGMA_PX, BAND_THRESHOLD_GREY, band_pixels,
-    simulated_band_pixels,
+    BAND_DILATION_PX, BAND_SMOOTHING_SIGMA_PX, BAND_THRESHOLD_GREY, all_band_pixels, band_pixels,
+    random_subset, simulated_band_pixels,
 };
 pub use case::{
     BenchCase, BenchOptions, NoiseLevel, simulated_case, simulation_options, user_case,
 };
-pub use fit_scaling::{ScalingRow, bench_fit_scaling, fit_sizes};
+pub use fit_scaling::{ScalingRow, ScalingSamples, bench_fit_scaling, fit_sizes};
 pub use patches::{
     MIN_PATCH_AREA_MM2, PatchCoverage, PatchDetail, largest_piece_area_share, patch_count,
     patch_coverage, patch_details, patches_of,

@@ -81,29 +81,40 @@ pub fn accuracy_vs_time_plot(results: &[RouteResult]) -> svg::Plot {
 
 /// Fit time against the number of samples, log-log.
 pub fn fit_scaling_plot(rows: &[ScalingRow]) -> svg::Plot {
+    // One pair of lines per sample source, in the order the rows come.
+    let mut sources: Vec<&str> = Vec::new();
+    for r in rows {
+        if !sources.contains(&r.samples_from.as_str()) {
+            sources.push(&r.samples_from);
+        }
+    }
+    let series_of = |source: &str, what: &str, seconds: fn(&ScalingRow) -> f64| svg::Series {
+        name: if sources.len() > 1 {
+            format!("{what}, {source}")
+        } else {
+            what.to_string()
+        },
+        points: rows
+            .iter()
+            .filter(|r| r.samples_from == source)
+            .map(|r| (r.samples as f64, seconds(r)))
+            .collect(),
+        connect: true,
+    };
     svg::Plot {
-        title: "RBF fit time against samples (ultrasound-like data)".into(),
+        title: "RBF fit time against samples".into(),
         x_label: "samples".into(),
         y_label: "seconds".into(),
         x_log: true,
         y_log: true,
-        series: vec![
-            svg::Series {
-                name: "fit".into(),
-                points: rows
-                    .iter()
-                    .map(|r| (r.samples as f64, r.fit_seconds))
-                    .collect(),
-                connect: true,
-            },
-            svg::Series {
-                name: "evaluate N points".into(),
-                points: rows
-                    .iter()
-                    .map(|r| (r.samples as f64, r.eval_seconds))
-                    .collect(),
-                connect: true,
-            },
-        ],
+        series: sources
+            .iter()
+            .flat_map(|&s| {
+                [
+                    series_of(s, "fit", |r| r.fit_seconds),
+                    series_of(s, "evaluate N points", |r| r.eval_seconds),
+                ]
+            })
+            .collect(),
     }
 }

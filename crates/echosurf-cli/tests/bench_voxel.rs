@@ -130,7 +130,7 @@ fn bench_quick_writes_table_json_and_plots() {
             "{table}"
         );
     }
-    assert!(table.contains("\n| 1000 |"), "{table}");
+    assert!(table.contains("\n| synthetic | 1000 |"), "{table}");
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("bench.json")).unwrap()).unwrap();
     let routes = json["routes"].as_array().unwrap();
@@ -163,6 +163,13 @@ fn bench_quick_writes_table_json_and_plots() {
 #[test]
 fn bench_fit_runs_only_the_fit_scaling() {
     let dir = tempfile::tempdir().unwrap();
+    let sim = dir.path().join("sim");
+    simulate_sphere(&sim);
+    let band = format!(
+        "{},{}",
+        sim.join("sim.mha").display(),
+        sim.join("sim_config.xml").display()
+    );
     let out = dir.path().join("fit");
     let run = echosurf(&[
         "bench",
@@ -171,6 +178,8 @@ fn bench_fit_runs_only_the_fit_scaling() {
         "1000",
         "--solver",
         "fast",
+        "--fit-band",
+        &band,
         "--out",
         out.to_str().unwrap(),
     ]);
@@ -180,9 +189,11 @@ fn bench_fit_runs_only_the_fit_scaling() {
         String::from_utf8_lossy(&run.stderr)
     );
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
-    assert!(table.starts_with("| samples |"), "{table}");
+    assert!(table.starts_with("| samples from | samples |"), "{table}");
     assert!(
-        table.contains("\n| 1000 |") && !table.contains("| case |"),
+        table.contains("\n| synthetic | 1000 |")
+            && table.contains("\n| sim.mha | 1000 |")
+            && !table.contains("| case |"),
         "{table}"
     );
     assert!(out.join("fit_scaling.svg").exists());
@@ -190,11 +201,36 @@ fn bench_fit_runs_only_the_fit_scaling() {
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("bench.json")).unwrap()).unwrap();
     assert_eq!(json["routes"].as_array().unwrap().len(), 0);
-    assert_eq!(json["fit_scaling"][0]["solver"], "Fast", "{json}");
+    let rows = json["fit_scaling"].as_array().unwrap();
+    assert_eq!(rows.len(), 2, "{json}");
+    for row in rows {
+        assert_eq!(row["solver"], "Fast", "{json}");
+        assert_eq!(row["samples"], 1000, "{json}");
+        // The fit's default accuracy (2 grey) holds on the sweep's band pixels too.
+        assert!(row["max_residual"].as_f64().unwrap() <= 2.0, "{row}");
+    }
+    assert_eq!(rows[1]["samples_from"], "sim.mha");
     let bad = Command::new(env!("CARGO_BIN_EXE_echosurf"))
         .args(["bench", "everything"])
         .output()
         .unwrap();
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("expected all, routes or fit"));
+    let bad_band = Command::new(env!("CARGO_BIN_EXE_echosurf"))
+        .args([
+            "bench",
+            "fit",
+            "--fit-max",
+            "1000",
+            "--fit-band",
+            "only.mha",
+        ])
+        .output()
+        .unwrap();
+    assert!(!bad_band.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad_band.stderr).contains("expected SEQUENCE,CONFIG"),
+        "{}",
+        String::from_utf8_lossy(&bad_band.stderr)
+    );
 }

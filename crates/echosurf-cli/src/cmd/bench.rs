@@ -8,8 +8,8 @@ use echosurf::io::{self, atomic::write_bytes_atomic};
 use echosurf::pipeline::VoxelRouteOptions;
 use echosurf::rbf::FitOptions;
 use echosurf_bench::{
-    BenchOptions, NoiseLevel, RouteResult, accuracy_vs_time_plot, bench_fit_scaling,
-    fit_scaling_plot, fit_sizes, markdown_table,
+    BenchOptions, NoiseLevel, RouteResult, ScalingSamples, accuracy_vs_time_plot,
+    bench_fit_scaling, fit_scaling_plot, fit_sizes, markdown_table,
 };
 use echosurf_sim::PhantomKind;
 
@@ -52,8 +52,43 @@ pub struct Args {
     /// Default 100000; 3000 with --quick.
     #[arg(long)]
     pub fit_max: Option<usize>,
+    /// The fit-scaling run also fits band pixels of this sweep, SEQUENCE,CONFIG (repeatable): each
+    /// frame smoothed (2 px Gaussian), above 45 grey, dilated 10 px; raw grey levels at their world
+    /// positions, random subsets of each size.
+    #[arg(long, value_name = "SEQUENCE,CONFIG")]
+    pub fit_band: Vec<String>,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+}
+
+/// Every band pixel of the sweep `SEQUENCE,CONFIG` (placed by the config's calibration), with the
+/// sequence's file name.
+fn sweep_band_pixels(spec: &str) -> anyhow::Result<(String, Vec<glam::DVec3>, Vec<f64>)> {
+    let parts: Vec<&str> = spec.split(',').map(str::trim).collect();
+    let [seq, config] = parts[..] else {
+        anyhow::bail!("--fit-band {spec}: expected SEQUENCE,CONFIG");
+    };
+    let sequence = io::read_sequence(seq.as_ref())?;
+    let calibration = io::read_calibration(config.as_ref())?;
+    let poses = io::resolve_poses(
+        &sequence,
+        Some(&calibration),
+        io::ReferenceChoice::Auto,
+        seq.as_ref(),
+    )?;
+    let placed: Vec<_> = poses
+        .poses
+        .iter()
+        .map(|p| (p.frame_index, p.image_to_world))
+        .collect();
+    let (points, values) = echosurf_bench::all_band_pixels(&sequence, &placed);
+    if points.is_empty() {
+        anyhow::bail!("--fit-band {seq}: no pixel of its frames is above the band's threshold");
+    }
+    let name = std::path::Path::new(seq)
+        .file_name()
+        .map_or_else(|| seq.to_string(), |n| n.to_string_lossy().into_owned());
+    Ok((name, points, values))
 }
 
 fn parse_noise(text: &str) -> anyhow::Result<Vec<NoiseLevel>> {
@@ -160,7 +195,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             solver,
             ..FitOptions::default()
         };
-        bench_fit_scaling(&sizes, &fit_options, args.seed)?
+        let mut rows =
+            bench_fit_scaling(&sizes, &fit_options, args.seed, ScalingSamples::Synthetic)?;
+        for spec in &args.fit_band {
+            let (name, points, values) = sweep_band_pixels(spec)?;
+            eprintln!(
+                "bench: fit scaling on {} band pixels of {name} ...",
+                points.len()
+            );
+            let source = ScalingSamples::BandPixels {
+                name: &name,
+                points: &points,
+                values: &values,
+            };
+            rows.extend(bench_fit_scaling(&sizes, &fit_options, args.seed, source)?);
+        }
+        rows
     };
 
     let mut table = if run_routes {
@@ -172,10 +222,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if !table.is_empty() {
             table.push('\n');
         }
-        table.push_str("| samples | fit (s) | iterations | max residual | evaluate N points (s) | solver bytes / sample |\n|---:|---:|---:|---:|---:|---:|\n");
+        table.push_str("| samples from | samples | fit (s) | iterations | max residual | evaluate N points (s) | solver bytes / sample |\n|---|---:|---:|---:|---:|---:|---:|\n");
         for r in &scaling {
             table.push_str(&format!(
-                "| {} | {:.2} | {} | {:.2} | {:.3} | {:.0} |\n",
+                "| {} | {} | {:.2} | {} | {:.2} | {:.3} | {:.0} |\n",
+                r.samples_from,
                 r.samples,
                 r.fit_seconds,
                 r.iterations,
