@@ -5,8 +5,8 @@
 
 use std::path::Path;
 
-use echosurf::io::{self, PointCloud, ReferenceChoice};
-use echosurf_bench::{band_pixels, simulated_band_pixels};
+use echosurf::io::{self, PointCloud};
+use echosurf_bench::{random_subset, simulated_band_pixels, sweep_band_pixels};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -20,20 +20,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .unwrap_or(1);
     let (points, values) = match (args.get(2), args.get(3)) {
         (Some(seq), Some(config)) => {
-            let sequence = io::read_sequence(Path::new(seq))?;
-            let calibration = io::read_calibration(Path::new(config))?;
-            let poses = io::resolve_poses(
-                &sequence,
-                Some(&calibration),
-                ReferenceChoice::Auto,
-                Path::new(seq),
-            )?;
-            let placed: Vec<_> = poses
-                .poses
-                .iter()
-                .map(|p| (p.frame_index, p.image_to_world))
-                .collect();
-            band_pixels(&sequence, &placed, count, seed)
+            let (points, values) = sweep_band_pixels(Path::new(seq), Path::new(config))?;
+            random_subset(points, values, count, seed)
         }
         _ => simulated_band_pixels(count, 60, seed)?,
     };

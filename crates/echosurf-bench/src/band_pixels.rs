@@ -27,6 +27,29 @@ pub fn band_pixels(
     random_subset(points, values, count, seed)
 }
 
+/// Every band pixel ([`all_band_pixels`]) of the sweep in `sequence_path`, its frames placed by the
+/// Image->Probe calibration of the device-set XML `config_path`.
+pub fn sweep_band_pixels(
+    sequence_path: &std::path::Path,
+    config_path: &std::path::Path,
+) -> echosurf::Result<(Vec<DVec3>, Vec<f64>)> {
+    use echosurf::io;
+    let sequence = io::read_sequence(sequence_path)?;
+    let calibration = io::read_calibration(config_path)?;
+    let poses = io::resolve_poses(
+        &sequence,
+        Some(&calibration),
+        io::ReferenceChoice::Auto,
+        sequence_path,
+    )?;
+    let placed: Vec<_> = poses
+        .poses
+        .iter()
+        .map(|p| (p.frame_index, p.image_to_world))
+        .collect();
+    Ok(all_band_pixels(&sequence, &placed))
+}
+
 /// Every band pixel of [`band_pixels`]' rule (no subset), frame by frame in `image_to_world` order.
 pub fn all_band_pixels(
     sequence: &echosurf::io::TrackedSequence,

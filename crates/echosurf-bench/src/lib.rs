@@ -15,7 +15,7 @@ pub mod svg;
 
 pub use band_pixels::{
     BAND_DILATION_PX, BAND_SMOOTHING_SIGMA_PX, BAND_THRESHOLD_GREY, all_band_pixels, band_pixels,
-    random_subset, simulated_band_pixels,
+    random_subset, simulated_band_pixels, sweep_band_pixels,
 };
 pub use case::{
     BenchCase, BenchOptions, NoiseLevel, simulated_case, simulation_options, user_case,

@@ -130,29 +130,24 @@ fn main() {
         )
         .expect("final")
     };
-    // Before/after in one run: `extract` finding every frame's crests itself.
-    let start = Instant::now();
-    let from_scratch = echosurf::pipeline::extract(
-        recorded,
-        Some(calibration),
-        &ExtractOptions::default(),
-        &NoProgress,
-    )
-    .expect("final from scratch");
-    let from_scratch_s = start.elapsed().as_secs_f64();
+    // Before/after in one run: `extract` finding every frame's crests itself, before the final mesh
+    // and after it (the machine's drift falls on both sides).
+    let extract_from_scratch = || {
+        let start = Instant::now();
+        let output = echosurf::pipeline::extract(
+            recorded,
+            Some(calibration),
+            &ExtractOptions::default(),
+            &NoProgress,
+        )
+        .expect("final from scratch");
+        (output, start.elapsed().as_secs_f64())
+    };
+    let (from_scratch, from_scratch_s) = extract_from_scratch();
     let start = Instant::now();
     let final_output = final_extract();
     let final_s = start.elapsed().as_secs_f64();
-    // Once more from scratch, after: the machine's drift falls on both sides.
-    let start = Instant::now();
-    let _ = echosurf::pipeline::extract(
-        recorded,
-        Some(calibration),
-        &ExtractOptions::default(),
-        &NoProgress,
-    )
-    .expect("final from scratch");
-    let from_scratch_after_s = start.elapsed().as_secs_f64();
+    let from_scratch_after_s = extract_from_scratch().1;
     assert_eq!(
         from_scratch.surfaces.first().map(|s| &s.mesh),
         final_output.surfaces.first().map(|s| &s.mesh),

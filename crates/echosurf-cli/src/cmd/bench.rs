@@ -68,20 +68,7 @@ fn sweep_band_pixels(spec: &str) -> anyhow::Result<(String, Vec<glam::DVec3>, Ve
     let [seq, config] = parts[..] else {
         anyhow::bail!("--fit-band {spec}: expected SEQUENCE,CONFIG");
     };
-    let sequence = io::read_sequence(seq.as_ref())?;
-    let calibration = io::read_calibration(config.as_ref())?;
-    let poses = io::resolve_poses(
-        &sequence,
-        Some(&calibration),
-        io::ReferenceChoice::Auto,
-        seq.as_ref(),
-    )?;
-    let placed: Vec<_> = poses
-        .poses
-        .iter()
-        .map(|p| (p.frame_index, p.image_to_world))
-        .collect();
-    let (points, values) = echosurf_bench::all_band_pixels(&sequence, &placed);
+    let (points, values) = echosurf_bench::sweep_band_pixels(seq.as_ref(), config.as_ref())?;
     if points.is_empty() {
         anyhow::bail!("--fit-band {seq}: no pixel of its frames is above the band's threshold");
     }
