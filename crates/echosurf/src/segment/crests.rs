@@ -157,7 +157,7 @@ pub fn echo_crests_reusing(
     Ok(poses
         .poses
         .iter()
-        .map(|pose| cache.frames[&pose.frame_index].clone())
+        .map(|pose| cache.frames[&CrestCache::key(pose)].clone())
         .collect())
 }
 
@@ -180,23 +180,31 @@ pub fn crest_crop(
 /// The crests of the frames of one recording found so far, so that a recording that grows (`live`)
 /// reads each frame once. A frame's crests depend only on its pixels, its pose, the crop and the
 /// options; the cache keeps the crop and options they were found with and starts afresh when either
-/// changes, and finds a frame again when its pose changed.
+/// changes, and holds each frame's crests under its pose (a frame placed anew is searched again).
 #[derive(Debug, Clone, Default)]
 pub struct CrestCache {
     crop: Option<ClipRect>,
     options: Option<CrestOptions>,
-    frames: std::collections::BTreeMap<usize, FrameCrests>,
+    frames: std::collections::BTreeMap<(usize, [u64; 16]), FrameCrests>,
 }
 
 impl CrestCache {
-    /// Frames whose crests are held.
+    /// Frame poses whose crests are held.
     pub fn frames(&self) -> usize {
         self.frames.len()
     }
 
-    /// Finds the crests of the frames of `poses` not held yet (inside `crop`, with `options`,
-    /// which must be valid), in parallel.
-    pub fn fill(
+    /// A frame under its pose: its index and the bits of its Image -> World matrix.
+    fn key(pose: &FramePose) -> (usize, [u64; 16]) {
+        (
+            pose.frame_index,
+            pose.image_to_world.to_cols_array().map(f64::to_bits),
+        )
+    }
+
+    /// Finds the crests of the frames of `poses` not held yet (inside `crop`, which lies in the
+    /// frames, with `options`, which are valid), in parallel.
+    pub(crate) fn fill(
         &mut self,
         sequence: &TrackedSequence,
         poses: &[FramePose],
@@ -212,19 +220,13 @@ impl CrestCache {
         }
         let missing: Vec<&FramePose> = poses
             .iter()
-            .filter(|pose| {
-                self.frames
-                    .get(&pose.frame_index)
-                    .is_none_or(|held| held.image_to_world != pose.image_to_world)
-            })
+            .filter(|pose| !self.frames.contains_key(&Self::key(pose)))
             .collect();
-        let found: Vec<FrameCrests> = missing
+        let found: Vec<((usize, [u64; 16]), FrameCrests)> = missing
             .par_iter()
-            .map(|pose| frame_crests(sequence, pose, crop, options))
+            .map(|pose| (Self::key(pose), frame_crests(sequence, pose, crop, options)))
             .collect();
-        for f in found {
-            self.frames.insert(f.frame_index, f);
-        }
+        self.frames.extend(found);
     }
 }
 
@@ -898,17 +900,30 @@ mod tests {
         assert!(CrestOptions::default().validate().is_ok());
     }
 
-    /// The cache gives what a fresh search gives: filled over a growing recording, after a pose
-    /// changed (that frame is searched again) and after the crop changed (all are).
+    /// The cache gives what searching each frame on its own gives: filled over a growing recording,
+    /// after a pose changed (that frame is searched again), for a frame listed twice under two poses,
+    /// and after the crop changed (all are searched again).
     #[test]
-    fn crests_from_the_cache_are_those_of_a_fresh_search() {
+    fn crests_from_the_cache_are_those_of_each_frame_searched_alone() {
         let sweep = crate::segment::synthetic::synthetic_sweep(90, 70, 12, 0.2, 0.4, 5);
         let (sequence, poses) = (&sweep.sequence, &sweep.poses);
         let options = CrestOptions::default();
-        let fresh = echo_crests(sequence, poses, None, false, &options).unwrap();
+        let alone = |poses: &PoseResolution, clip: Option<ClipRect>| -> Vec<FrameCrests> {
+            let crop = crest_crop(sequence, poses, clip, false).unwrap();
+            poses
+                .poses
+                .iter()
+                .map(|p| frame_crests(sequence, p, crop, &options))
+                .collect()
+        };
+        let fresh = alone(poses, None);
         assert!(
             fresh.iter().all(|f| !f.crests.is_empty()),
             "an echo in every frame"
+        );
+        assert_eq!(
+            echo_crests(sequence, poses, None, false, &options).unwrap(),
+            fresh
         );
         let mut cache = CrestCache::default();
         let first_half = PoseResolution {
@@ -922,16 +937,19 @@ mod tests {
         assert_eq!(all, fresh);
         assert_eq!(cache.frames(), 12);
 
-        // Frame 3 moved: its crests are placed by its new pose.
+        // Frame 3 moved, and frame 5 listed once more under a moved pose.
         let mut moved = poses.clone();
-        moved.poses[3].image_to_world *= DMat4::from_scale(glam::DVec3::splat(1.5));
+        let scale = DMat4::from_scale(glam::DVec3::splat(1.5));
+        moved.poses[3].image_to_world *= scale;
+        let mut again = moved.poses[5];
+        again.image_to_world *= scale;
+        moved.poses.push(again);
         let refound =
             echo_crests_reusing(sequence, &moved, None, false, &options, &mut cache).unwrap();
-        assert_eq!(
-            refound,
-            echo_crests(sequence, &moved, None, false, &options).unwrap()
-        );
+        assert_eq!(refound, alone(&moved, None));
         assert_ne!(refound[3], fresh[3]);
+        assert_eq!(refound[5], fresh[5]);
+        assert_ne!(refound[12], fresh[5]);
 
         // A narrower crop: every frame is searched again inside it.
         let crop = ClipRect {
@@ -940,10 +958,7 @@ mod tests {
         };
         let cropped =
             echo_crests_reusing(sequence, poses, Some(crop), false, &options, &mut cache).unwrap();
-        assert_eq!(
-            cropped,
-            echo_crests(sequence, poses, Some(crop), false, &options).unwrap()
-        );
+        assert_eq!(cropped, alone(poses, Some(crop)));
         assert_ne!(cropped, fresh);
     }
 }
