@@ -21,7 +21,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (points, values) = match (args.get(2), args.get(3)) {
         (Some(seq), Some(config)) => {
             let (points, values) = sweep_band_pixels(Path::new(seq), Path::new(config))?;
-            random_subset(points, values, count, seed)
+            random_subset(&points, &values, count, seed)
         }
         _ => simulated_band_pixels(count, 60, seed)?,
     };

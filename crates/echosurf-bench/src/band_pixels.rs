@@ -24,7 +24,10 @@ pub fn band_pixels(
     seed: u64,
 ) -> (Vec<DVec3>, Vec<f64>) {
     let (points, values) = all_band_pixels(sequence, image_to_world);
-    random_subset(points, values, count, seed)
+    if points.len() <= count {
+        return (points, values);
+    }
+    random_subset(&points, &values, count, seed)
 }
 
 /// Every band pixel ([`all_band_pixels`]) of the sweep in `sequence_path`, its frames placed by the
@@ -96,21 +99,23 @@ pub fn all_band_pixels(
 /// A random subset of `count` of the points with their values (all when fewer), in their order;
 /// same inputs and seed, same subset.
 pub fn random_subset(
-    mut points: Vec<DVec3>,
-    mut values: Vec<f64>,
+    points: &[DVec3],
+    values: &[f64],
     count: usize,
     seed: u64,
 ) -> (Vec<DVec3>, Vec<f64>) {
-    if points.len() > count {
-        let mut order: Vec<usize> = (0..points.len()).collect();
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let (chosen, _) = order.partial_shuffle(&mut rng, count);
-        let mut chosen = chosen.to_vec();
-        chosen.sort_unstable();
-        points = chosen.iter().map(|&i| points[i]).collect();
-        values = chosen.iter().map(|&i| values[i]).collect();
+    if points.len() <= count {
+        return (points.to_vec(), values.to_vec());
     }
-    (points, values)
+    let mut order: Vec<usize> = (0..points.len()).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (chosen, _) = order.partial_shuffle(&mut rng, count);
+    let mut chosen = chosen.to_vec();
+    chosen.sort_unstable();
+    (
+        chosen.iter().map(|&i| points[i]).collect(),
+        chosen.iter().map(|&i| values[i]).collect(),
+    )
 }
 
 /// [`band_pixels`] of a duck sweep from our own simulator (true poses, no tracking error; two sweeps of

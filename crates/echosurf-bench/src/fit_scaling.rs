@@ -32,8 +32,9 @@ impl ScalingSamples<'_> {
     fn draw(&self, n: usize, seed: u64) -> Option<(Vec<DVec3>, Vec<f64>)> {
         match self {
             ScalingSamples::Synthetic => Some(ultrasound_like_samples(n, seed)),
-            ScalingSamples::BandPixels { points, values, .. } => (points.len() >= n)
-                .then(|| random_subset(points.to_vec(), values.to_vec(), n, seed)),
+            ScalingSamples::BandPixels { points, values, .. } => {
+                (points.len() >= n).then(|| random_subset(points, values, n, seed))
+            }
         }
     }
 }

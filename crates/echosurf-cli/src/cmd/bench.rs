@@ -61,9 +61,9 @@ pub struct Args {
     pub seed: u64,
 }
 
-/// Every band pixel of the sweep `SEQUENCE,CONFIG` (placed by the config's calibration), with the
-/// sequence's file name.
-fn sweep_band_pixels(spec: &str) -> anyhow::Result<(String, Vec<glam::DVec3>, Vec<f64>)> {
+/// Every band pixel of the sweep `--fit-band SEQUENCE,CONFIG` (placed by the config's calibration),
+/// with the sequence's file name.
+fn fit_band_pixels(spec: &str) -> anyhow::Result<(String, Vec<glam::DVec3>, Vec<f64>)> {
     let parts: Vec<&str> = spec.split(',').map(str::trim).collect();
     let [seq, config] = parts[..] else {
         anyhow::bail!("--fit-band {spec}: expected SEQUENCE,CONFIG");
@@ -185,7 +185,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let mut rows =
             bench_fit_scaling(&sizes, &fit_options, args.seed, ScalingSamples::Synthetic)?;
         for spec in &args.fit_band {
-            let (name, points, values) = sweep_band_pixels(spec)?;
+            let (name, points, values) = fit_band_pixels(spec)?;
             eprintln!(
                 "bench: fit scaling on {} band pixels of {name} ...",
                 points.len()

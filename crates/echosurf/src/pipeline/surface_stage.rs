@@ -216,9 +216,10 @@ pub(super) struct CrestExtension<'a> {
     pub(super) surface_options: &'a SurfaceOptions,
 }
 
-/// The echo crests of every placed frame ([`crate::segment::crests::echo_crests`], those not in `cache` added to it) in world mm, with normals across their
-/// chains tilted by the neighbouring frames ([`orient_crests`]), inside the clip rectangle and, as the
-/// segmentation has it, the frames' data region.
+/// The echo crests of every placed frame ([`crate::segment::crests::echo_crests`]; those of frames not
+/// in `cache` are added to it) in world mm, with normals across their chains tilted by the neighbouring
+/// frames ([`orient_crests`]), inside the clip rectangle and, as the segmentation has it, the frames'
+/// data region.
 pub(super) fn oriented_echo_crests(
     sequence: &TrackedSequence,
     poses: &PoseResolution,
