@@ -365,18 +365,31 @@ fn greedy_reduction_uses_fewer_centres_and_fits_all_samples() {
     assert!(model.centres().len() <= 700);
 }
 
+/// The global solver on `pts` / `vals` at smoothing `w` to `accuracy` (treecode accuracy 1e-4), with
+/// the coarse levels `levels` (None: one-level Schwarz).
+fn fast_solve(
+    pts: &[DVec3],
+    vals: &[f64],
+    w: f64,
+    accuracy: f64,
+    levels: Option<coarse::CoarseConfig>,
+) -> fast::Solution {
+    let basis = trend::TrendBasis::new(pts);
+    let params = tree::TreecodeParams::for_accuracy(1e-4);
+    fast::FastSystem::with_levels(pts, w, &basis, params, levels)
+        .unwrap()
+        .solve(vals, accuracy, 500, None, &NoProgress)
+        .unwrap()
+}
+
 #[test]
 fn coarse_level_cuts_iterations_and_the_solve_meets_the_accuracy_exactly() {
     let (pts, vals) = ultrasound_like_samples(4000, 81);
     let (w, accuracy) = (1.0, 2.0);
     let basis = trend::TrendBasis::new(&pts);
-    let params = tree::TreecodeParams::for_accuracy(1e-4);
     let solve = |coarse: bool| {
         let levels = coarse.then(coarse::CoarseConfig::default);
-        fast::FastSystem::with_levels(&pts, w, &basis, params, levels)
-            .unwrap()
-            .solve(&vals, accuracy, 500, None, &NoProgress)
-            .unwrap()
+        fast_solve(&pts, &vals, w, accuracy, levels)
     };
     let (one, two) = (solve(false), solve(true));
     assert!(two.breakdown.coarse_points > 0);
@@ -404,16 +417,12 @@ fn a_nested_coarse_level_meets_the_accuracy_in_about_the_factored_iterations() {
     let (pts, vals) = ultrasound_like_samples(6000, 83);
     let (w, accuracy) = (0.5, 1.0);
     let basis = trend::TrendBasis::new(&pts);
-    let params = tree::TreecodeParams::for_accuracy(1e-4);
     let solve = |dense_max_points| {
         let levels = coarse::CoarseConfig {
             dense_max_points,
             ..coarse::CoarseConfig::default()
         };
-        fast::FastSystem::with_levels(&pts, w, &basis, params, Some(levels))
-            .unwrap()
-            .solve(&vals, accuracy, 500, None, &NoProgress)
-            .unwrap()
+        fast_solve(&pts, &vals, w, accuracy, Some(levels))
     };
     let (factored, nested) = (solve(2048), solve(128));
     // 6,000 / 8 rounded down to a power of two: 512 points, factored or over 64 factored ones.
@@ -449,11 +458,13 @@ fn rough_data_at_w_0_runs_the_arnoldi_steps_on_the_accurate_product() {
     let vals: Vec<f64> = pts.iter().map(|_| rng.random_range(0.0..255.0)).collect();
     let accuracy = 1.0;
     let basis = trend::TrendBasis::new(&pts);
-    let params = tree::TreecodeParams::for_accuracy(1e-4);
-    let solution = fast::FastSystem::new(&pts, 0.0, &basis, params)
-        .unwrap()
-        .solve(&vals, accuracy, 500, None, &NoProgress)
-        .unwrap();
+    let solution = fast_solve(
+        &pts,
+        &vals,
+        0.0,
+        accuracy,
+        Some(coarse::CoarseConfig::default()),
+    );
     // Only the check itself used the cheap product.
     assert!(solution.breakdown.accurate_arnoldi);
     assert_eq!(solution.breakdown.inner_products, 1);
