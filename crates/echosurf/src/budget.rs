@@ -25,6 +25,9 @@ const PU_FIT_BYTES_PER_SAMPLE: u64 = 320;
 const PU_FIT_FRESH_BYTES_PER_SAMPLE: u64 = 620;
 /// Fast solver per centre: treecode nodes and moments, neighbour lists, Schwarz blocks, Krylov basis.
 const FAST_FIT_BYTES_PER_CENTRE: u64 = 4096;
+/// The fast solver's FMM translation table (316 offsets of 147 x 147 f64 at the default accuracy) and
+/// its transient build, from [`crate::rbf::FMM_MIN_POINTS`] samples.
+const FAST_FIT_FMM_TABLE_BYTES: u64 = 96 << 20;
 /// Surface per seed point at 0.5 mm: the lattice nodes followed from it, the trust buckets and the
 /// meshes (the fitted model is resident when the check runs).
 const SURFACE_BYTES_PER_SEED: u64 = 7000;
@@ -98,7 +101,16 @@ fn fit_bytes_with(samples: u64, options: &crate::rbf::FitOptions, pu_bytes_per_s
     match solver {
         // The (n + 4)^2 system in f64 and its LU factors.
         SolverChoice::Direct => (samples + 4).saturating_mul(samples + 4).saturating_mul(16),
-        SolverChoice::Fast => samples.saturating_mul(FAST_FIT_BYTES_PER_CENTRE),
+        SolverChoice::Fast => {
+            let table = if samples >= crate::rbf::FMM_MIN_POINTS as u64 {
+                FAST_FIT_FMM_TABLE_BYTES
+            } else {
+                0
+            };
+            samples
+                .saturating_mul(FAST_FIT_BYTES_PER_CENTRE)
+                .saturating_add(table)
+        }
         _ => samples.saturating_mul(pu_bytes_per_sample),
     }
 }

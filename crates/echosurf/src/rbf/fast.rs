@@ -1,6 +1,7 @@
 //! Fast solve of `(A - wI) l + U d = f, U^T l = 0`: right-preconditioned restarted GMRES on the projected
 //! system `P (A - wI) P l = P f` (P = I - U U^T, U the orthonormal trend basis), with the treecode product
-//! and a two-level Schwarz preconditioner (Beatson, Light & Billings 2000):
+//! (from [`FMM_MIN_POINTS`] samples the fast multipole method, [`super::fmm`]) and a two-level Schwarz
+//! preconditioner (Beatson, Light & Billings 2000):
 //! - local level, restricted additive Schwarz: every tree leaf is a subdomain, extended by its nearest
 //!   neighbours; a dense local RBF solve (with its own reduced trend) is factored once and only the rows of
 //!   the leaf's own points are kept (as f32, to save memory);
@@ -17,8 +18,8 @@
 //! Measured (ultrasound-like samples, w = 1, accuracy 2, eval accuracy 1e-4; 2 shared cores giving about
 //! one core's throughput): one-level Schwarz needed 28 iterations / 2.4 s at 10k and 633 s at 100k (issue
 //! #5), one accurate product per iteration (32k kernel terms per sample at 100k). Now: 8 iterations /
-//! 0.7 s at 10k, 17 iterations / 30-40 s at 100k, where the products are ~85 % of the time (the treecode's
-//! kernel throughput is the limit; see `FastBreakdown`).
+//! 0.7 s at 10k, 17 iterations / 30-40 s at 100k, where the treecode's products were ~85 % of the time;
+//! the FMM products take about a quarter of that (docs/decisions/0053-fmm-product.md).
 
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Instant;
@@ -28,6 +29,7 @@ use rayon::prelude::*;
 
 use super::coarse::{CoarseConfig, CoarseLevel};
 use super::direct::lu_solve;
+use super::fmm::{Fmm, FmmParams};
 use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams, split_by_sizes};
 use super::trend::{TrendBasis, project_out, trend_coefficients};
 use crate::progress::Progress;
@@ -45,6 +47,10 @@ pub(super) const CHEAP_PRODUCT_NODES: usize = 6;
 /// The cheap Arnoldi product is used only when its error on a solution-like vector is at most this many
 /// times the fitting accuracy (docs/decisions/0043-arnoldi-product-accuracy.md).
 const CHEAP_PRODUCT_MAX_ERROR_RATIO: f64 = 4.0;
+/// From this many samples the products use the fast multipole method ([`super::fmm`]), at the
+/// treecode's accuracy, for every Arnoldi step; below it, building its translation table costs more
+/// than it saves (docs/decisions/0053-fmm-product.md).
+pub(crate) const FMM_MIN_POINTS: usize = 20_000;
 
 /// Where the global fast solver spent its time (wall-clock seconds) and how often.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
@@ -94,8 +100,9 @@ impl Counter {
 
 /// The assembled fast system, in tree order.
 pub(crate) struct FastSystem {
+    /// The samples' tree: their order, the subdomains and, below [`FMM_MIN_POINTS`], the product.
     pub treecode: Treecode,
-    lists: InteractionLists,
+    accurate_product: AccurateProduct,
     /// Cheaper, less accurate product for the Arnoldi steps (same tree, so the same point order).
     inner: Option<(Treecode, InteractionLists)>,
     smoothing: f64,
@@ -120,6 +127,14 @@ pub(super) struct Schwarz {
     domains: Vec<(Vec<u32>, Vec<f32>)>,
     leaf_sizes: Vec<usize>,
     coarse: Option<CoarseLevel>,
+}
+
+/// How the accurate product `(A - wI) l` is computed.
+enum AccurateProduct {
+    /// Target leaves against the treecode's clusters, through these interaction lists.
+    Treecode(InteractionLists),
+    /// The fast multipole method over the same samples (tree order as its input order).
+    Fmm(Box<Fmm>),
 }
 
 /// The first Arnoldi step, computed while checking the cheap product ([`FastSystem::first_step`]).
@@ -175,22 +190,25 @@ impl FastSystem {
             basis,
             params,
             Some(CoarseConfig::default()),
+            FMM_MIN_POINTS,
         )
     }
 
-    /// As [`FastSystem::new`] with the coarse levels built by `coarse`; None drops them (one-level
-    /// Schwarz, for tests).
+    /// As [`FastSystem::new`] with the coarse levels built by `coarse` (None drops them: one-level
+    /// Schwarz, for tests) and the FMM product from `fmm_min_points` samples.
     pub fn with_levels(
         points: &[DVec3],
         smoothing: f64,
         basis: &TrendBasis,
         params: TreecodeParams,
         coarse: Option<CoarseConfig>,
+        fmm_min_points: usize,
     ) -> Result<FastSystem> {
         let start = Instant::now();
         let treecode = Treecode::new(points, params);
-        let lists = treecode.interactions(&treecode.tree);
-        let inner = inner_params(params).map(|p| {
+        let use_fmm = points.len() >= fmm_min_points;
+        let lists = (!use_fmm).then(|| treecode.interactions(&treecode.tree));
+        let inner = inner_params(params).filter(|_| !use_fmm).map(|p| {
             let tc = Treecode::new(points, p);
             // Same points and leaf size: the same median splits, so the same order.
             debug_assert_eq!(tc.tree.order, treecode.tree.order);
@@ -202,9 +220,16 @@ impl FastSystem {
             .collect();
         let u = basis.matrix(&tree_points);
         let precond = Schwarz::new(&treecode.tree, smoothing, coarse.as_ref())?;
+        let accurate_product = match lists {
+            Some(lists) => AccurateProduct::Treecode(lists),
+            None => AccurateProduct::Fmm(Box::new(Fmm::new(
+                &tree_points,
+                FmmParams::matching(params),
+            ))),
+        };
         Ok(FastSystem {
             treecode,
-            lists,
+            accurate_product,
             inner,
             smoothing,
             u,
@@ -245,8 +270,17 @@ impl FastSystem {
 
     /// `(A - wI) l` for tree-ordered `l`, accurate product.
     fn apply(&self, l: &[f64], out: &mut [f64]) {
-        self.accurate
-            .time(|| product(&self.treecode, &self.lists, self.smoothing, l, out));
+        self.accurate.time(|| match &self.accurate_product {
+            AccurateProduct::Treecode(lists) => {
+                product(&self.treecode, lists, self.smoothing, l, out)
+            }
+            AccurateProduct::Fmm(fmm) => {
+                fmm.product(l, out);
+                for (o, &li) in out.iter_mut().zip(l) {
+                    *o -= self.smoothing * li;
+                }
+            }
+        });
     }
 
     /// `(A - wI) l` with the inner (cheap) product, or the accurate one without an inner treecode.
@@ -487,7 +521,10 @@ impl FastSystem {
 
     pub fn memory_bytes(&self) -> usize {
         self.treecode.memory_bytes()
-            + self.lists.memory_bytes()
+            + match &self.accurate_product {
+                AccurateProduct::Treecode(lists) => lists.memory_bytes(),
+                AccurateProduct::Fmm(fmm) => fmm.memory_bytes() + fmm.product_bytes(),
+            }
             + self.u.len() * 8
             + self.precond.memory_bytes()
             + self

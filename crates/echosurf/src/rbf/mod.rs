@@ -14,6 +14,7 @@
 mod coarse;
 mod direct;
 mod fast;
+mod fmm;
 mod kernel;
 mod merge;
 mod model;
@@ -30,6 +31,7 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 
+pub(crate) use fast::FMM_MIN_POINTS;
 pub use fast::FastBreakdown;
 pub use merge::merge_near_duplicates;
 pub use model::RbfModel;
