@@ -92,8 +92,9 @@ pub(crate) struct Fmm {
     basis_t: Vec<f64>,
     /// Compressed unit translations, `rank x rank` column-major per offset (empty for near offsets).
     m2l: Vec<Vec<f64>>,
-    /// 1-D child-to-parent interpolation, `[side][parent node * p + child node]`.
+    /// 1-D child-to-parent interpolation, `[side][parent node * p + child node]`, and its transpose.
     transfer: [Vec<f64>; 2],
+    transfer_t: [Vec<f64>; 2],
 }
 
 /// Chebyshev points of the first kind on [-1, 1].
@@ -317,6 +318,9 @@ impl Fmm {
             }
             t
         });
+        let transfer_t = transfer
+            .clone()
+            .map(|t| (0..p * p).map(|i| t[(i % p) * p + i / p]).collect());
         let p3 = p * p * p;
         let basis_t = (0..rank * p3)
             .map(|i| basis[(i % p3) * rank + i / p3])
@@ -338,6 +342,7 @@ impl Fmm {
             basis,
             m2l,
             transfer,
+            transfer_t,
         }
     }
 
@@ -526,22 +531,16 @@ impl Fmm {
             let c = self.box_centre(leaf, keys[b]);
             let mut w = [vec![0.0; self.p], vec![0.0; self.p], vec![0.0; self.p]];
             let start = self.leaf_start[b] as usize;
-            let loc = if leaf >= 2 {
-                Some(&leaf_local[b * p3..(b + 1) * p3])
-            } else {
-                None
-            };
+            // The leaf depth is at least 2, so every leaf has a local expansion.
+            let loc = &leaf_local[b * p3..(b + 1) * p3];
             let near = &self.near[self.near_offsets[b] as usize..self.near_offsets[b + 1] as usize];
             for (i, v) in (start..).zip(vals.iter_mut()) {
                 let x = DVec3::new(self.xs[i], self.ys[i], self.zs[i]);
-                let mut s = 0.0;
-                if let Some(loc) = loc {
-                    let u = (x - c) / h;
-                    cheb.basis(u.x, &mut w[0]);
-                    cheb.basis(u.y, &mut w[1]);
-                    cheb.basis(u.z, &mut w[2]);
-                    s = tensor_dot(&w, loc);
-                }
+                let u = (x - c) / h;
+                cheb.basis(u.x, &mut w[0]);
+                cheb.basis(u.y, &mut w[1]);
+                cheb.basis(u.z, &mut w[2]);
+                let mut s = tensor_dot(&w, loc);
                 for &nb in near {
                     let r = self.leaf_start[nb as usize] as usize
                         ..self.leaf_start[nb as usize + 1] as usize;
@@ -569,46 +568,12 @@ impl Fmm {
         parent: &mut [f64],
         scratch: &mut [f64],
     ) {
-        let p = self.p;
-        let (a, b) = scratch.split_at_mut(p * p * p);
-        // Axis z, then y, then x: out[m1,m2,m3] = sum T_x[m1][k1] T_y[m2][k2] T_z[m3][k3] child[k1,k2,k3].
-        let (tx, ty, tz) = (
-            &self.transfer[side[0]],
-            &self.transfer[side[1]],
-            &self.transfer[side[2]],
-        );
-        for i in 0..p * p {
-            for m in 0..p {
-                let mut s = 0.0;
-                for kk in 0..p {
-                    s += tz[m * p + kk] * child[i * p + kk];
-                }
-                a[i * p + m] = s;
-            }
-        }
-        for i in 0..p {
-            for m in 0..p {
-                for j in 0..p {
-                    let mut s = 0.0;
-                    for kk in 0..p {
-                        s += ty[m * p + kk] * a[(i * p + kk) * p + j];
-                    }
-                    b[(i * p + m) * p + j] = s;
-                }
-            }
-        }
-        for m in 0..p {
-            for j in 0..p * p {
-                let mut s = 0.0;
-                for kk in 0..p {
-                    s += tx[m * p + kk] * b[kk * p * p + j];
-                }
-                parent[m * p * p + j] += s;
-            }
-        }
+        let t = side.map(|s| self.transfer[s].as_slice());
+        tensor_apply(self.p, t, child, parent, scratch);
     }
 
-    /// Adds the parent's node potentials, interpolated to the child's nodes, to `child`.
+    /// Adds the parent's node potentials, interpolated to the child's nodes, to `child` (the
+    /// transpose of [`Fmm::transfer_up`]).
     fn transfer_down(
         &self,
         side: [usize; 3],
@@ -616,43 +581,8 @@ impl Fmm {
         child: &mut [f64],
         scratch: &mut [f64],
     ) {
-        let p = self.p;
-        let (a, b) = scratch.split_at_mut(p * p * p);
-        let (tx, ty, tz) = (
-            &self.transfer[side[0]],
-            &self.transfer[side[1]],
-            &self.transfer[side[2]],
-        );
-        // Transposes of transfer_up's passes: out[k1,k2,k3] = sum T_x[m1][k1] T_y[m2][k2] T_z[m3][k3] in[m].
-        for i in 0..p * p {
-            for kk in 0..p {
-                let mut s = 0.0;
-                for m in 0..p {
-                    s += tz[m * p + kk] * parent[i * p + m];
-                }
-                a[i * p + kk] = s;
-            }
-        }
-        for i in 0..p {
-            for kk in 0..p {
-                for j in 0..p {
-                    let mut s = 0.0;
-                    for m in 0..p {
-                        s += ty[m * p + kk] * a[(i * p + m) * p + j];
-                    }
-                    b[(i * p + kk) * p + j] = s;
-                }
-            }
-        }
-        for kk in 0..p {
-            for j in 0..p * p {
-                let mut s = 0.0;
-                for m in 0..p {
-                    s += tx[m * p + kk] * b[m * p * p + j];
-                }
-                child[kk * p * p + j] += s;
-            }
-        }
+        let t = side.map(|s| self.transfer_t[s].as_slice());
+        tensor_apply(self.p, t, parent, child, scratch);
     }
 
     /// Bytes held (for the memory budget), not counting one product's temporaries.
@@ -672,6 +602,36 @@ impl Fmm {
         let boxes: usize = self.levels.iter().map(|l| l.keys.len()).sum();
         let p3 = self.p * self.p * self.p;
         boxes * (2 * p3 + self.rank) * 8 + self.len() * 16
+    }
+}
+
+/// `out[a, b, c] += sum M_x[a][i] M_y[b][j] M_z[c][k] input[i, j, k]` for `p x p` row-major matrices
+/// `m`, one axis at a time (z, then y, then x); `scratch` holds `2 p^3`.
+fn tensor_apply(p: usize, m: [&[f64]; 3], input: &[f64], out: &mut [f64], scratch: &mut [f64]) {
+    let (a, b) = scratch.split_at_mut(p * p * p);
+    for i in 0..p * p {
+        for c in 0..p {
+            let row = &m[2][c * p..(c + 1) * p];
+            a[i * p + c] = row
+                .iter()
+                .zip(&input[i * p..(i + 1) * p])
+                .map(|(x, y)| x * y)
+                .sum();
+        }
+    }
+    for i in 0..p {
+        for r in 0..p {
+            let row = &m[1][r * p..(r + 1) * p];
+            for c in 0..p {
+                b[(i * p + r) * p + c] = (0..p).map(|j| row[j] * a[(i * p + j) * p + c]).sum();
+            }
+        }
+    }
+    for r in 0..p {
+        let row = &m[0][r * p..(r + 1) * p];
+        for j in 0..p * p {
+            out[r * p * p + j] += (0..p).map(|i| row[i] * b[i * p * p + j]).sum::<f64>();
+        }
     }
 }
 
