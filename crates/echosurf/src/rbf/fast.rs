@@ -276,9 +276,7 @@ impl FastSystem {
             }
             AccurateProduct::Fmm(fmm) => {
                 fmm.product(l, out);
-                for (o, &li) in out.iter_mut().zip(l) {
-                    *o -= self.smoothing * li;
-                }
+                subtract_smoothing(self.smoothing, l, out);
             }
         });
     }
@@ -738,6 +736,11 @@ pub(super) fn product(
 ) {
     let proxies = tc.upward(l);
     tc.evaluate(&tc.tree, lists, l, &proxies, out, None);
+    subtract_smoothing(smoothing, l, out);
+}
+
+/// `out -= w l`: the smoothing term of `(A - wI) l`.
+fn subtract_smoothing(smoothing: f64, l: &[f64], out: &mut [f64]) {
     for (o, &li) in out.iter_mut().zip(l) {
         *o -= smoothing * li;
     }

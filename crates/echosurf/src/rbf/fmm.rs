@@ -16,7 +16,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::kernel::sum_r;
-use super::tree::split_by_sizes;
+use super::tree::{flatten_lists, split_by_sizes};
 
 /// Interpolation order and SVD cut-off of one FMM.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -92,6 +92,7 @@ pub(crate) struct Fmm {
     basis_t: Vec<f64>,
     /// Compressed unit translations, `rank x rank` column-major per offset (empty for near offsets).
     m2l: Vec<Vec<f64>>,
+    cheb: Cheb,
     /// 1-D child-to-parent interpolation, `[side][parent node * p + child node]`, and its transpose.
     transfer: [Vec<f64>; 2],
     transfer_t: [Vec<f64>; 2],
@@ -176,6 +177,14 @@ fn coords(key: u64) -> [i64; 3] {
     ]
 }
 
+/// Morton key of the leaf at `depth` holding `x`, in the cube of side `side` from `root_lo`.
+fn cell_key(x: DVec3, root_lo: DVec3, side: f64, depth: usize) -> u64 {
+    let cells = 1u64 << depth;
+    let c = ((x - root_lo) / side * cells as f64).floor();
+    let clamp = |v: f64| (v.max(0.0) as u64).min(cells - 1);
+    morton([clamp(c.x), clamp(c.y), clamp(c.z)])
+}
+
 /// Deepest leaf level considered (21 bits per axis fit a 64-bit key; far more than any sweep needs).
 const MAX_DEPTH: usize = 16;
 
@@ -199,15 +208,10 @@ impl Fmm {
             Some(d) => d.clamp(2, MAX_DEPTH),
             None => choose_leaf_depth(points, root_lo, side, p, rank),
         };
-        let cells = (1u64 << leaf_depth) as f64;
         let mut keyed: Vec<(u64, u32)> = points
             .iter()
             .enumerate()
-            .map(|(i, &x)| {
-                let c = ((x - root_lo) / side * cells).floor();
-                let clamp = |v: f64| (v.max(0.0) as u64).min((1u64 << leaf_depth) - 1);
-                (morton([clamp(c.x), clamp(c.y), clamp(c.z)]), i as u32)
-            })
+            .map(|(i, &x)| (cell_key(x, root_lo, side, leaf_depth), i as u32))
             .collect();
         keyed.sort_unstable();
         let order: Vec<u32> = keyed.iter().map(|k| k.1).collect();
@@ -289,7 +293,7 @@ impl Fmm {
                     pairs
                 })
                 .collect();
-            let (offsets, entries) = flatten(chunks);
+            let (offsets, entries) = flatten_lists(chunks);
             level.far_offsets = offsets;
             level.far = entries;
         }
@@ -304,7 +308,7 @@ impl Fmm {
                 list
             })
             .collect();
-        let (near_offsets, near) = flatten(near_lists);
+        let (near_offsets, near) = flatten_lists(near_lists);
 
         let cheb = Cheb::new(p);
         let transfer = [-1.0, 1.0].map(|s: f64| {
@@ -341,6 +345,7 @@ impl Fmm {
             root_side: side,
             basis,
             m2l,
+            cheb,
             transfer,
             transfer_t,
         }
@@ -379,13 +384,23 @@ impl Fmm {
             + DVec3::splat(h)
     }
 
+    /// The 1-D interpolation weights of (Morton-ordered) point `i` in the box of centre `c` and
+    /// half-width `h`, per axis; returns the point.
+    fn point_weights(&self, i: usize, c: DVec3, h: f64, w: &mut [Vec<f64>; 3]) -> DVec3 {
+        let x = DVec3::new(self.xs[i], self.ys[i], self.zs[i]);
+        let u = (x - c) / h;
+        self.cheb.basis(u.x, &mut w[0]);
+        self.cheb.basis(u.y, &mut w[1]);
+        self.cheb.basis(u.z, &mut w[2]);
+        x
+    }
+
     /// `out_i = sum_j q_j |x_i - x_j|` for charges and values in the input order.
     pub fn product(&self, q_in: &[f64], out: &mut [f64]) {
         let n = self.len();
         let p3 = self.p * self.p * self.p;
         let q: Vec<f64> = self.order.iter().map(|&i| q_in[i as usize]).collect();
         let leaf = self.levels.len() - 1;
-        let cheb = Cheb::new(self.p);
 
         // Upward pass: multipole (interpolation-node charges) per box.
         let mut multipole: Vec<Vec<f64>> = vec![Vec::new(); leaf + 1];
@@ -400,10 +415,7 @@ impl Fmm {
                     let c = self.box_centre(leaf, keys[b]);
                     let mut w = [vec![0.0; self.p], vec![0.0; self.p], vec![0.0; self.p]];
                     for i in self.leaf_start[b] as usize..self.leaf_start[b + 1] as usize {
-                        let x = (DVec3::new(self.xs[i], self.ys[i], self.zs[i]) - c) / h;
-                        cheb.basis(x.x, &mut w[0]);
-                        cheb.basis(x.y, &mut w[1]);
-                        cheb.basis(x.z, &mut w[2]);
+                        self.point_weights(i, c, h, &mut w);
                         tensor_accumulate(&w, q[i], m);
                     }
                 });
@@ -535,11 +547,7 @@ impl Fmm {
             let loc = &leaf_local[b * p3..(b + 1) * p3];
             let near = &self.near[self.near_offsets[b] as usize..self.near_offsets[b + 1] as usize];
             for (i, v) in (start..).zip(vals.iter_mut()) {
-                let x = DVec3::new(self.xs[i], self.ys[i], self.zs[i]);
-                let u = (x - c) / h;
-                cheb.basis(u.x, &mut w[0]);
-                cheb.basis(u.y, &mut w[1]);
-                cheb.basis(u.z, &mut w[2]);
+                let x = self.point_weights(i, c, h, &mut w);
                 let mut s = tensor_dot(&w, loc);
                 for &nb in near {
                     let r = self.leaf_start[nb as usize] as usize
@@ -694,30 +702,14 @@ fn for_each_neighbour(keys: &[u64], c: [i64; 3], mut f: impl FnMut(usize)) {
     }
 }
 
-fn flatten<T: Copy>(lists: Vec<Vec<T>>) -> (Vec<u32>, Vec<T>) {
-    let mut offsets = Vec::with_capacity(lists.len() + 1);
-    let mut entries = Vec::with_capacity(lists.iter().map(Vec::len).sum());
-    offsets.push(0);
-    for l in lists {
-        entries.extend_from_slice(&l);
-        offsets.push(entries.len() as u32);
-    }
-    (offsets, entries)
-}
-
 /// The leaf depth with the least estimated product cost: near point pairs plus far-field work.
 fn choose_leaf_depth(points: &[DVec3], root_lo: DVec3, side: f64, p: usize, rank: usize) -> usize {
     let p3 = (p * p * p) as f64;
     let mut best = (f64::INFINITY, 2usize);
     for depth in 2..=MAX_DEPTH {
-        let cells = (1u64 << depth) as f64;
         let mut keys: Vec<u64> = points
             .iter()
-            .map(|&x| {
-                let c = ((x - root_lo) / side * cells).floor();
-                let clamp = |v: f64| (v.max(0.0) as u64).min((1u64 << depth) - 1);
-                morton([clamp(c.x), clamp(c.y), clamp(c.z)])
-            })
+            .map(|&x| cell_key(x, root_lo, side, depth))
             .collect();
         keys.sort_unstable();
         let mut boxes: Vec<(u64, usize)> = Vec::new();

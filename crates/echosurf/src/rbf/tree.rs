@@ -423,13 +423,7 @@ impl Treecode {
             .par_iter()
             .map(|&(_, _, centre, radius)| self.leaf_list(centre, radius))
             .collect();
-        let mut offsets = Vec::with_capacity(lists.len() + 1);
-        let mut entries = Vec::with_capacity(lists.iter().map(Vec::len).sum());
-        offsets.push(0u32);
-        for l in lists {
-            entries.extend_from_slice(&l);
-            offsets.push(entries.len() as u32);
-        }
+        let (offsets, entries) = flatten_lists(lists);
         InteractionLists { offsets, entries }
     }
 
@@ -554,6 +548,18 @@ impl InteractionLists {
     pub fn memory_bytes(&self) -> usize {
         (self.offsets.len() + self.entries.len()) * 4
     }
+}
+
+/// Lists concatenated, with the offset of each list's start (CSR; one more offset than lists).
+pub(crate) fn flatten_lists<T: Copy>(lists: Vec<Vec<T>>) -> (Vec<u32>, Vec<T>) {
+    let mut offsets = Vec::with_capacity(lists.len() + 1);
+    let mut entries = Vec::with_capacity(lists.iter().map(Vec::len).sum());
+    offsets.push(0);
+    for l in lists {
+        entries.extend_from_slice(&l);
+        offsets.push(entries.len() as u32);
+    }
+    (offsets, entries)
 }
 
 /// Splits `data` into consecutive chunks of the given sizes.
