@@ -25,8 +25,9 @@ const PU_FIT_BYTES_PER_SAMPLE: u64 = 320;
 const PU_FIT_FRESH_BYTES_PER_SAMPLE: u64 = 620;
 /// Fast solver per centre: treecode nodes and moments, neighbour lists, Schwarz blocks, Krylov basis.
 const FAST_FIT_BYTES_PER_CENTRE: u64 = 4096;
-/// The fast solver's FMM translation table (316 offsets of 147 x 147 f64 at the default accuracy) and
-/// its transient build, from [`crate::rbf::FMM_MIN_POINTS`] samples.
+/// The fast solver's FMM translation tables (316 offsets of 147 x 147 f64 at the default accuracy for
+/// the product, of 65 x 65 for the coarse level's) and their transient build, from
+/// [`crate::rbf::FMM_MIN_POINTS`] samples.
 const FAST_FIT_FMM_TABLE_BYTES: u64 = 96 << 20;
 /// Surface per seed point at 0.5 mm: the lattice nodes followed from it, the trust buckets and the
 /// meshes (the fitted model is resident when the check runs).

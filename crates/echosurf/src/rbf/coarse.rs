@@ -7,7 +7,8 @@
 //! samples) with a smoothing-spline solve on C (dense up to 2,048 points; above, approximately by C's own
 //! two-level Schwarz preconditioner, see [`CoarseConfig`]), applied *multiplicatively before* the local
 //! corrections: `l_C = A_CC^-1 r_C`, `r' = r - (A - wI) E l_C` (the product of the coarse coefficients
-//! with every sample, by a treecode over the coarse points), then the local solves act on `r'`.
+//! with every sample, by a treecode over the coarse points or, from [`CoarseConfig::fmm_min_points`]
+//! samples, by a fast multipole method charged at them), then the local solves act on `r'`.
 //!
 //! Smoothing on C: the coarse matrix is the principal submatrix `A_CC - wI` of the fine system (Beatson,
 //! Light & Billings 2000). Scaling w by N / |C| (the same smoothing functional on sparser data) was
@@ -20,6 +21,7 @@ use rayon::prelude::*;
 
 use super::direct::{SequentialLu, saddle_matrix};
 use super::fast::{CHEAP_PRODUCT_NODES, CHEAP_PRODUCT_THETA};
+use super::fmm::{Fmm, FmmParams};
 use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams};
 use super::trend::{TrendBasis, project_out};
 use crate::{Error, Result};
@@ -30,7 +32,8 @@ const COARSE_LEAF: usize = 16;
 /// Treecode of the coarse product (theta 0.5, 6 nodes: about 2e-4 of a far cluster's absolute sum). On
 /// rough data at w = 0 the coarse coefficients are large and alternate in sign, and a cheaper product
 /// (theta 0.7 / 4 nodes) erred enough to stall GMRES; 8 nodes cost more and saved no iteration
-/// (docs/decisions/0049-nested-coarse-level.md).
+/// (docs/decisions/0049-nested-coarse-level.md). The coarse FMM uses the same 6 nodes per side
+/// (4 stalled GMRES; docs/decisions/0054-coarse-product-by-fmm.md).
 const COARSE_PRODUCT_THETA: f64 = 0.5;
 const COARSE_PRODUCT_NODES: usize = 6;
 
@@ -52,6 +55,9 @@ pub(crate) struct CoarseConfig {
     /// the cheaper coarse product of 0049's first trial, the application alone did not converge at 100k
     /// samples and one step did.
     pub nested_steps: usize,
+    /// Over this many fine samples the coarse product is a fast multipole method from the coarse
+    /// points ([`COARSE_PRODUCT_NODES`] per side) instead of a treecode over them.
+    pub fmm_min_points: usize,
 }
 
 impl Default for CoarseConfig {
@@ -60,6 +66,7 @@ impl Default for CoarseConfig {
             ratio: 8,
             dense_max_points: 2048,
             nested_steps: 1,
+            fmm_min_points: super::fast::FMM_MIN_POINTS,
         }
     }
 }
@@ -102,8 +109,15 @@ pub(crate) struct CoarseLevel {
     pub index: Vec<u32>,
     solver: CoarseSolver,
     smoothing: f64,
-    treecode: Treecode,
-    lists: InteractionLists,
+    product: CoarseProduct,
+}
+
+/// How the coarse coefficients are evaluated at every fine sample.
+enum CoarseProduct {
+    /// Fine leaves against a treecode over the coarse points.
+    Treecode(Box<(Treecode, InteractionLists)>),
+    /// A fast multipole method over the fine samples, charged at the coarse points only.
+    Fmm(Box<Fmm>),
 }
 
 impl CoarseLevel {
@@ -152,21 +166,31 @@ impl CoarseLevel {
                 steps: config.nested_steps,
             }))
         };
-        let treecode = Treecode::new(
-            &pts,
-            TreecodeParams {
-                leaf_size: COARSE_LEAF,
-                theta: COARSE_PRODUCT_THETA,
+        let product = if n >= config.fmm_min_points {
+            let fine: Vec<DVec3> = (0..n).map(|i| tree.point(i)).collect();
+            let params = FmmParams {
                 nodes_per_side: COARSE_PRODUCT_NODES,
-            },
-        );
-        let lists = treecode.interactions(tree);
+                svd_cutoff: 10f64.powi(-(COARSE_PRODUCT_NODES as i32)),
+                leaf_depth: None,
+            };
+            CoarseProduct::Fmm(Box::new(Fmm::with_sources(&fine, &index, params)))
+        } else {
+            let treecode = Treecode::new(
+                &pts,
+                TreecodeParams {
+                    leaf_size: COARSE_LEAF,
+                    theta: COARSE_PRODUCT_THETA,
+                    nodes_per_side: COARSE_PRODUCT_NODES,
+                },
+            );
+            let lists = treecode.interactions(tree);
+            CoarseProduct::Treecode(Box::new((treecode, lists)))
+        };
         let level = CoarseLevel {
             index,
             solver,
             smoothing,
-            treecode,
-            lists,
+            product,
         };
         // A singular coarse system shows as non-finite coefficients for a generic right-hand side.
         let probe: Vec<f64> = (0..n).map(|i| ((i * 7919) % 101) as f64 - 50.0).collect();
@@ -218,10 +242,15 @@ impl CoarseLevel {
     /// `out = (A - wI) E l` on every fine sample (tree order), `E` placing the coarse coefficients `l`
     /// at their samples.
     pub fn product(&self, tree: &Tree, l: &[f64], out: &mut [f64]) {
-        let q = self.treecode.tree.to_tree_order(l);
-        let proxies = self.treecode.upward(&q);
-        self.treecode
-            .evaluate(tree, &self.lists, &q, &proxies, out, None);
+        match &self.product {
+            CoarseProduct::Treecode(product) => {
+                let (treecode, lists) = &**product;
+                let q = treecode.tree.to_tree_order(l);
+                let proxies = treecode.upward(&q);
+                treecode.evaluate(tree, lists, &q, &proxies, out, None);
+            }
+            CoarseProduct::Fmm(fmm) => fmm.product(l, out),
+        }
         for (&i, &li) in self.index.iter().zip(l) {
             out[i as usize] -= self.smoothing * li;
         }
@@ -237,7 +266,11 @@ impl CoarseLevel {
                     + nested.schwarz.memory_bytes()
             }
         };
-        solver + self.treecode.memory_bytes() + self.lists.memory_bytes() + self.index.len() * 4
+        let product = match &self.product {
+            CoarseProduct::Treecode(product) => product.0.memory_bytes() + product.1.memory_bytes(),
+            CoarseProduct::Fmm(fmm) => fmm.memory_bytes() + fmm.product_bytes(),
+        };
+        solver + product + self.index.len() * 4
     }
 }
 
@@ -381,10 +414,24 @@ mod tests {
 
     #[test]
     fn coarse_product_matches_the_direct_sum() {
+        // By the treecode over the coarse points, and by the FMM charged at them.
+        for fmm_min_points in [usize::MAX, 0] {
+            coarse_product_matches_the_direct_sum_with(CoarseConfig {
+                fmm_min_points,
+                ..ratio_16()
+            });
+        }
+    }
+
+    fn coarse_product_matches_the_direct_sum_with(config: CoarseConfig) {
         let (pts, _) = ultrasound_like_samples(4000, 25);
         let tree = Tree::build(&pts, 64);
         let w = 0.5;
-        let level = CoarseLevel::new(&tree, &ratio_16(), w).unwrap().unwrap();
+        let level = CoarseLevel::new(&tree, &config, w).unwrap().unwrap();
+        assert_eq!(
+            matches!(level.product, CoarseProduct::Fmm(_)),
+            config.fmm_min_points == 0
+        );
         let mut rng = ChaCha8Rng::seed_from_u64(26);
         let l: Vec<f64> = (0..level.len())
             .map(|_| rng.random_range(-1.0..1.0))
@@ -425,6 +472,7 @@ mod tests {
             ratio: 8,
             dense_max_points: 128,
             nested_steps: steps,
+            ..CoarseConfig::default()
         };
         let mut rng = ChaCha8Rng::seed_from_u64(28);
         let r: Vec<f64> = (0..tree.len())

@@ -90,6 +90,22 @@ impl SequentialLu {
         }
     }
 
+    /// As [`SequentialLu::new`], or None when a pivot is zero or within round-off of the largest entry
+    /// (the rule of [`lu_solve`]).
+    pub fn new_nonsingular(a: Mat<f64>) -> Option<Self> {
+        let mut scale = 0.0f64;
+        for j in 0..a.ncols() {
+            for i in 0..a.nrows() {
+                scale = scale.max(a[(i, j)].abs());
+            }
+        }
+        let lu = Self::new(a);
+        let tiny = (1e-15 * scale * f64::EPSILON).max(1e-300);
+        (0..lu.factors.nrows())
+            .all(|k| lu.factors[(k, k)].abs() > tiny)
+            .then_some(lu)
+    }
+
     /// Replaces `rhs` (n rows) by the solution of `A x = rhs`.
     pub fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
         let n = self.factors.nrows();
@@ -191,5 +207,23 @@ mod tests {
         let mut singular = vec![1.0, 2.0, 2.0, 4.0];
         let mut rhs = vec![1.0, 1.0];
         assert!(!lu_solve(&mut singular, 2, &mut rhs, 1));
+    }
+
+    #[test]
+    fn checked_blocked_lu_solves_or_refuses_as_the_small_lu_does() {
+        let a = [0.0, 2.0, 1.0, 1.0, 1.0, 0.0, 3.0, 0.0, 1.0];
+        let x = [1.0, -2.0, 0.5];
+        let lu = SequentialLu::new_nonsingular(Mat::from_fn(3, 3, |i, j| a[i * 3 + j]))
+            .expect("regular");
+        let mut b = Mat::from_fn(3, 1, |i, _| (0..3).map(|j| a[i * 3 + j] * x[j]).sum());
+        lu.solve_in_place(b.as_mut());
+        for (i, xi) in x.iter().enumerate() {
+            assert!((b[(i, 0)] - xi).abs() < 1e-12);
+        }
+        // Two equal rows (two coincident samples in an RBF matrix).
+        let singular = Mat::from_fn(3, 3, |i, j| {
+            [1.0, 2.0, 3.0, 1.0, 2.0, 3.0, 0.0, 1.0, 5.0][i.min(2) * 3 + j]
+        });
+        assert!(SequentialLu::new_nonsingular(singular).is_none());
     }
 }

@@ -28,7 +28,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::coarse::{CoarseConfig, CoarseLevel};
-use super::direct::lu_solve;
+use super::direct::SequentialLu;
 use super::fmm::{Fmm, FmmParams};
 use super::tree::{InteractionLists, Tree, Treecode, TreecodeParams, split_by_sizes};
 use super::trend::{TrendBasis, project_out, trend_coefficients};
@@ -195,7 +195,8 @@ impl FastSystem {
     }
 
     /// As [`FastSystem::new`] with the coarse levels built by `coarse` (None drops them: one-level
-    /// Schwarz, for tests) and the FMM product from `fmm_min_points` samples.
+    /// Schwarz, for tests) and the FMM products (the system's and the coarse level's) from
+    /// `fmm_min_points` samples.
     pub fn with_levels(
         points: &[DVec3],
         smoothing: f64,
@@ -219,6 +220,10 @@ impl FastSystem {
             .map(|i| treecode.tree.point(i))
             .collect();
         let u = basis.matrix(&tree_points);
+        let coarse = coarse.map(|c| CoarseConfig {
+            fmm_min_points,
+            ..c
+        });
         let precond = Schwarz::new(&treecode.tree, smoothing, coarse.as_ref())?;
         let accurate_product = match lists {
             Some(lists) => AccurateProduct::Treecode(lists),
@@ -658,28 +663,21 @@ fn local_inverse_rows(
     let r = basis.rank();
     let u = basis.matrix(&pts);
     let size = m + r;
-    let mut a = vec![0.0; size * size];
-    for i in 0..m {
-        for j in 0..m {
-            a[i * size + j] = (pts[i] - pts[j]).length();
-        }
-        a[i * size + i] -= smoothing;
-        for k in 0..r {
-            a[i * size + m + k] = u[i * r + k];
-            a[(m + k) * size + i] = u[i * r + k];
-        }
-    }
-    let mut b = vec![0.0; size * inner];
-    for i in 0..inner {
-        b[i * inner + i] = 1.0;
-    }
-    if !lu_solve(&mut a, size, &mut b, inner) {
-        return None;
-    }
+    let a = faer::Mat::<f64>::from_fn(size, size, |i, j| match (i < m, j < m) {
+        (true, true) => (pts[i] - pts[j]).length() - if i == j { smoothing } else { 0.0 },
+        (true, false) => u[i * r + j - m],
+        (false, true) => u[j * r + i - m],
+        (false, false) => 0.0,
+    });
+    // Blocked LU (faer, sequential: each leaf is one parallel task); the unit right-hand sides of the
+    // leaf's own points.
+    let lu = SequentialLu::new_nonsingular(a)?;
+    let mut b = faer::Mat::<f64>::from_fn(size, inner, |i, j| if i == j { 1.0 } else { 0.0 });
+    lu.solve_in_place(b.as_mut());
     let mut rows = vec![0.0f32; inner * m];
     for i in 0..inner {
         for j in 0..m {
-            rows[i * m + j] = b[j * inner + i] as f32;
+            rows[i * m + j] = b[(j, i)] as f32;
         }
     }
     rows.iter().all(|v| v.is_finite()).then_some(rows)
