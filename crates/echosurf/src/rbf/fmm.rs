@@ -1,4 +1,6 @@
-//! Black-box fast multipole method (Fong & Darve 2009) for the self product `sum_j q_j |x_i - x_j|`.
+//! Black-box fast multipole method (Fong & Darve 2009) for the self product `sum_j q_j |x_i - x_j|`,
+//! and for the product from charges at a subset of the points to all of them (the coarse level's,
+//! [`Fmm::with_sources`]).
 //!
 //! The global solver's products evaluate the spline at its own samples, every iteration. The treecode
 //! ([`super::tree`]) does that target leaf by source cluster, through up to 8^3 proxies per far cluster,
