@@ -153,7 +153,7 @@ impl CoarseLevel {
                 },
             );
             let lists = treecode.interactions(&treecode.tree);
-            let tree_points: Vec<DVec3> = (0..m).map(|i| treecode.tree.point(i)).collect();
+            let tree_points = treecode.tree.points();
             let u = basis.matrix(&tree_points);
             let schwarz = super::fast::Schwarz::new(&treecode.tree, smoothing, Some(config))?;
             CoarseSolver::Nested(Box::new(NestedSolver {
@@ -167,7 +167,7 @@ impl CoarseLevel {
             }))
         };
         let product = if n >= config.fmm_min_points {
-            let fine: Vec<DVec3> = (0..n).map(|i| tree.point(i)).collect();
+            let fine = tree.points();
             let params = FmmParams {
                 nodes_per_side: COARSE_PRODUCT_NODES,
                 svd_cutoff: 10f64.powi(-(COARSE_PRODUCT_NODES as i32)),
@@ -306,7 +306,7 @@ impl NestedSolver {
 pub(crate) fn spread_subset(tree: &Tree, max_points: usize) -> Vec<u32> {
     let m = 1usize << max_points.max(1).ilog2();
     let group = tree.len().div_ceil(m).max(1);
-    let points: Vec<DVec3> = (0..tree.len()).map(|i| tree.point(i)).collect();
+    let points = tree.points();
     let selection = Tree::build(&points, group);
     let mut index: Vec<u32> = selection
         .leaves

@@ -216,9 +216,7 @@ impl FastSystem {
             let lists = tc.interactions(&tc.tree);
             (tc, lists)
         });
-        let tree_points: Vec<DVec3> = (0..treecode.tree.len())
-            .map(|i| treecode.tree.point(i))
-            .collect();
+        let tree_points = treecode.tree.points();
         let u = basis.matrix(&tree_points);
         let coarse = coarse.map(|c| CoarseConfig {
             fmm_min_points,

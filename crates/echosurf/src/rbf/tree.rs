@@ -163,6 +163,11 @@ impl Tree {
         DVec3::new(self.xs[i], self.ys[i], self.zs[i])
     }
 
+    /// Every point, in tree order.
+    pub fn points(&self) -> Vec<DVec3> {
+        (0..self.len()).map(|i| self.point(i)).collect()
+    }
+
     /// Input-ordered values -> tree order.
     pub fn to_tree_order(&self, values: &[f64]) -> Vec<f64> {
         self.order.iter().map(|&i| values[i as usize]).collect()
