@@ -4,7 +4,9 @@
 //! `w_i = exp(-|x - p_i|^2 / h^2)` cut off at `SUPPORT_RADII` h. Near the points `f` is a signed distance
 //! to the local least-squares plane: its zero set averages the points over about `h`, bridges gaps
 //! narrower than about twice the reach, and gives one sheet where the points form several close layers
-//! facing the same way. The field is undefined (NaN) farther than `reach_mm` from every point, so a sheet
+//! facing the same way. Points closer than `h / 2` whose normals agree are summed as one point weighted
+//! by their count (the same field to well within the sheet's accuracy, far fewer terms per evaluation
+//! where the points are dense). The field is undefined (NaN) farther than `reach_mm` from every point, so a sheet
 //! ends about `reach_mm` past its last point instead of running on along its tangent plane. Gaps between
 //! pieces of one sheet are also bridged over up to `bridge_mm` in the sheet's plane: where points lie
 //! around a spot on opposite sides and it sits on their common plane (see [`SheetOptions::bridge_mm`]).
@@ -118,12 +120,80 @@ const MIN_SLOPE_ALONG_NORMAL: f64 = 0.1;
 /// Weights are cut off at this many `h`: exp(-9) ~ 1e-4 of a point's own weight.
 const SUPPORT_RADII: f64 = 3.0;
 
+/// Points in one cell of this many `h` whose normals agree are summed as one point: their mean,
+/// weighted by their count. The frames' echo crests lie a pixel apart along every frame, denser than
+/// the sheet's smoothing needs, and every evaluation sums over all of them
+/// (docs/decisions/0055-merged-sheet-points.md).
+const MERGE_CELL_RADII: f64 = 0.5;
+
+/// Points merged into one have normals within this cosine (30 degrees) of its first point's.
+const MERGE_MIN_NORMAL_COS: f64 = 0.866;
+
+/// Oriented points merged by [`merge_close_points`].
+struct MergedPoints {
+    points: Vec<DVec3>,
+    /// Unit normals.
+    normals: Vec<DVec3>,
+    /// How many given points each stands for.
+    counts: Vec<f64>,
+}
+
+/// `points` (finite) with unit `normals`, merged per cell of `cell_mm`: each point joins the first
+/// merged point of its cell whose first normal agrees with its own ([`MERGE_MIN_NORMAL_COS`]), else
+/// starts one. The merged points are the means of theirs with the normalised sums of their normals, in
+/// the order of their first point. `cell_mm <= 0` keeps every point.
+fn merge_close_points(points: &[DVec3], normals: &[DVec3], cell_mm: f64) -> MergedPoints {
+    if cell_mm.is_nan() || cell_mm <= 0.0 {
+        return MergedPoints {
+            points: points.to_vec(),
+            normals: normals.to_vec(),
+            counts: vec![1.0; points.len()],
+        };
+    }
+    let mut cells: std::collections::HashMap<[i64; 3], Vec<u32>> = Default::default();
+    let (mut sums, mut normal_sums, mut firsts) = (Vec::new(), Vec::new(), Vec::<DVec3>::new());
+    let mut counts = Vec::new();
+    for (&p, &n) in points.iter().zip(normals) {
+        let cell = (p / cell_mm).floor().as_i64vec3().to_array();
+        let merged = cells.entry(cell).or_default();
+        match merged
+            .iter()
+            .find(|&&k| firsts[k as usize].dot(n) >= MERGE_MIN_NORMAL_COS)
+        {
+            Some(&k) => {
+                let k = k as usize;
+                sums[k] += p;
+                normal_sums[k] += n;
+                counts[k] += 1.0;
+            }
+            None => {
+                merged.push(sums.len() as u32);
+                sums.push(p);
+                normal_sums.push(n);
+                firsts.push(n);
+                counts.push(1.0);
+            }
+        }
+    }
+    MergedPoints {
+        points: sums.iter().zip(&counts).map(|(&s, &c)| s / c).collect(),
+        // Normals within 30 degrees of one another do not cancel.
+        normals: normal_sums.iter().map(|s| s.normalize()).collect(),
+        counts,
+    }
+}
+
 /// The implicit surface of oriented points (see the module docs).
 pub(crate) struct OrientedPointField {
     /// The points (in `grid`'s bucket order, [`PointBuckets::sorted_points`]) and their unit normals in
     /// the same order, so that [`OrientedPointField::at`] reads each run of neighbours as two slices.
     grid: PointBuckets,
     normals: Vec<DVec3>,
+    /// How many given points each point stands for ([`merge_close_points`]), in the same order.
+    counts: Vec<f64>,
+    /// The given (unmerged) points, for whether `x` lies within reach of one: merging must not pull
+    /// the sheet's rims in.
+    reach_grid: PointBuckets,
     smoothing_mm: f64,
     reach_mm: f64,
     bridge_mm: f64,
@@ -144,24 +214,47 @@ impl OrientedPointField {
             .zip(normals)
             .filter_map(|(&p, n)| Some((p, n.try_normalize()?)).filter(|_| p.is_finite()))
             .unzip();
+        Self::with_merge_cell(
+            &points,
+            &normals,
+            smoothing_mm,
+            reach_mm,
+            bridge_mm,
+            MERGE_CELL_RADII * smoothing_mm,
+        )
+    }
+
+    /// As [`OrientedPointField::new`] for finite `points` with unit `normals`, merged per cell of
+    /// `merge_cell_mm` ([`merge_close_points`]; 0: not merged).
+    fn with_merge_cell(
+        points: &[DVec3],
+        normals: &[DVec3],
+        smoothing_mm: f64,
+        reach_mm: f64,
+        bridge_mm: f64,
+        merge_cell_mm: f64,
+    ) -> Option<OrientedPointField> {
         let support = SUPPORT_RADII * smoothing_mm;
-        // Every point is finite, so the grid keeps them all.
-        let grid = PointBuckets::new(&points, support)?;
-        let normals = grid
-            .original_indices()
-            .iter()
-            .map(|&i| normals[i as usize])
-            .collect();
+        let reach_mm = reach_mm.min(support);
+        // Every point is finite, so the grids keep them all.
+        let reach_grid = PointBuckets::new(points, reach_mm)?;
+        let merged = merge_close_points(points, normals, merge_cell_mm);
+        let grid = PointBuckets::new(&merged.points, support)?;
+        let order = grid.original_indices();
+        let normals = order.iter().map(|&i| merged.normals[i as usize]).collect();
+        let counts = order.iter().map(|&i| merged.counts[i as usize]).collect();
         Some(OrientedPointField {
             grid,
             normals,
+            counts,
+            reach_grid,
             smoothing_mm,
-            reach_mm: reach_mm.min(support),
+            reach_mm,
             bridge_mm: bridge_mm.min(support),
         })
     }
 
-    /// The points in the order given to [`OrientedPointField::new`] (less those it dropped).
+    /// The (merged) points in the order of their first given point (less those it dropped).
     fn points_in_given_order(&self) -> Vec<DVec3> {
         let mut points = vec![DVec3::ZERO; self.grid.sorted_points().len()];
         for (&p, &i) in self
@@ -186,29 +279,32 @@ impl OrientedPointField {
         let (mut weight, mut value, mut value2, mut normal) = (0.0, 0.0, 0.0, DVec3::ZERO);
         // Sums of w_i (x - p_i) . n_i (x - p_i) and w_i (x - p_i), for the gradient.
         let (mut weighted_along_offsets, mut weighted_offsets) = (DVec3::ZERO, DVec3::ZERO);
-        let mut within_reach = false;
+        let within_reach = self.reach_grid.contains(x);
         // Unit in-plane directions from the points that could bridge to `x`, and their count.
-        let (mut around, mut bridging) = (DVec3::ZERO, 0usize);
+        let (mut around, mut bridging) = (DVec3::ZERO, 0.0);
         let points = self.grid.sorted_points();
         self.grid.runs_around(x, |run| {
-            for (&p, &n) in points[run.clone()].iter().zip(&self.normals[run]) {
+            for ((&p, &n), &count) in points[run.clone()]
+                .iter()
+                .zip(&self.normals[run.clone()])
+                .zip(&self.counts[run])
+            {
                 let d = x - p;
                 let d2 = d.length_squared();
                 if d2 > support2 {
                     continue;
                 }
                 let along = d.dot(n);
-                within_reach |= d2 <= reach2;
                 if !within_reach && along * along <= reach2 {
                     let across = d - n * along;
                     if across.length_squared() <= bridge2
                         && let Some(u) = across.try_normalize()
                     {
-                        around += u;
-                        bridging += 1;
+                        around += count * u;
+                        bridging += count;
                     }
                 }
-                let w = (-d2 * inv_h2).exp();
+                let w = count * (-d2 * inv_h2).exp();
                 weight += w;
                 value += w * along;
                 value2 += w * along * along;
@@ -219,8 +315,8 @@ impl OrientedPointField {
             true
         });
         let bridged = || {
-            bridging >= 2
-                && around.length() <= BRIDGE_MAX_IMBALANCE * bridging as f64
+            bridging >= 2.0
+                && around.length() <= BRIDGE_MAX_IMBALANCE * bridging
                 && value2 <= BRIDGE_MAX_RMS_MM * BRIDGE_MAX_RMS_MM * weight
         };
         if weight <= 0.0 || !(within_reach || bridged()) {
@@ -325,7 +421,9 @@ mod tests {
             }
         }
         let h = 0.8;
-        let field = OrientedPointField::new(&points, &normals, h, 1.5, 0.0).unwrap();
+        // Unmerged: the mean normal below sums the given points.
+        let field =
+            OrientedPointField::with_merge_cell(&points, &normals, h, 1.5, 0.0, 0.0).unwrap();
         let e = 1e-6;
         let mut rescaled = 0;
         for probe in [
@@ -363,6 +461,92 @@ mod tests {
             rescaled >= 2,
             "the probes do not tell the slope from the mean normal's length"
         );
+    }
+
+    #[test]
+    fn close_points_with_agreeing_normals_merge_into_their_mean() {
+        let tilted = DVec3::new(0.3, 0.0, 1.0).normalize();
+        let points = [
+            DVec3::new(0.1, 0.1, 0.1),
+            DVec3::new(0.3, 0.2, 0.1),
+            // Same cell, normal opposite: a point of its own.
+            DVec3::new(0.2, 0.2, 0.2),
+            // Next cell.
+            DVec3::new(0.45, 0.1, 0.1),
+            // Same cell as the first, normal 17 degrees off: merged.
+            DVec3::new(0.2, 0.3, 0.3),
+        ];
+        let normals = [DVec3::Z, DVec3::Z, DVec3::NEG_Z, DVec3::Z, tilted];
+        let merged = merge_close_points(&points, &normals, 0.4);
+        assert_eq!(merged.counts, vec![3.0, 1.0, 1.0]);
+        let mean = (points[0] + points[1] + points[4]) / 3.0;
+        assert!(merged.points[0].distance(mean) < 1e-15);
+        assert!(merged.normals[0].distance((2.0 * DVec3::Z + tilted).normalize()) < 1e-15);
+        assert_eq!(&merged.points[1..], &[points[2], points[3]]);
+        assert_eq!(&merged.normals[1..], &[DVec3::NEG_Z, DVec3::Z]);
+        let kept = merge_close_points(&points, &normals, 0.0);
+        assert_eq!(kept.points, points.to_vec());
+        assert_eq!(kept.counts, vec![1.0; 5]);
+    }
+
+    #[test]
+    fn merged_points_give_the_field_of_all_points_and_end_where_they_end() {
+        // A jittered cap of a 6 mm sphere (up to 50 degrees from its pole) sampled every ~0.1 mm, with
+        // outward normals tilted by up to 10 degrees: merging leaves a fraction of the points, the same
+        // values to a few micrometres and the same NaN beyond the cap's rim.
+        let (mut points, mut normals) = (Vec::new(), Vec::new());
+        let (radius, step_mm) = (6.0, 0.1);
+        for i in 0..53 {
+            let polar = i as f64 * step_mm / radius;
+            let ring =
+                ((std::f64::consts::TAU * polar.sin() * radius / step_mm).round() as usize).max(1);
+            for j in 0..ring {
+                let azimuth = j as f64 / ring as f64 * std::f64::consts::TAU;
+                let n = DVec3::new(
+                    polar.sin() * azimuth.cos(),
+                    polar.sin() * azimuth.sin(),
+                    polar.cos(),
+                );
+                let k = (i * 31 + j * 17) % 13;
+                let jitter = 0.02 * (k as f64 / 6.0 - 1.0);
+                let tilt = DVec3::new(0.17 * (k as f64 / 12.0 - 0.5), 0.0, 0.0);
+                points.push(n * (radius + jitter));
+                normals.push((n + tilt).normalize());
+            }
+        }
+        let all =
+            OrientedPointField::with_merge_cell(&points, &normals, 0.8, 0.75, 2.0, 0.0).unwrap();
+        let merged = OrientedPointField::new(&points, &normals, 0.8, 0.75, 2.0).unwrap();
+        let kept = merged.grid.sorted_points().len();
+        assert_eq!(all.grid.sorted_points().len(), points.len());
+        assert!(
+            kept * 3 < points.len(),
+            "{kept} of {} points left",
+            points.len()
+        );
+        let (mut compared, mut undefined) = (0, 0);
+        for a in 0..40 {
+            for r in [-0.6, -0.2, 0.0, 0.3, 0.7, 1.2] {
+                let polar = 0.05 + a as f64 * 0.025;
+                let probe = DVec3::new(polar.sin(), 0.3 * polar.sin(), polar.cos()).normalize()
+                    * (radius + r);
+                let (v_all, g_all) = all.at(probe);
+                let (v, g) = merged.at(probe);
+                assert_eq!(
+                    v_all.is_nan(),
+                    v.is_nan(),
+                    "at {probe} ({v_all} against {v})"
+                );
+                if v.is_nan() {
+                    undefined += 1;
+                    continue;
+                }
+                compared += 1;
+                assert!((v - v_all).abs() < 0.005, "at {probe}: {v} against {v_all}");
+                assert!(g.distance(g_all) < 0.02, "at {probe}: {g} against {g_all}");
+            }
+        }
+        assert!(compared > 100 && undefined > 20, "{compared} {undefined}");
     }
 
     #[test]
