@@ -46,16 +46,15 @@ fn demo_writes_everything_and_its_ridge_sheet_is_accurate() {
     // The weaker echoes' ridges fill the sheet (`WeakEchoes`): measured 93.2 % of the swept walls
     // facing the beam within 30 degrees in 11 pieces, against 90.6 % in 15 without them; pieces that
     // fewer than 3 frames echo are then removed: 10 pieces (93.5 % since pinched pieces are joined);
-    // pieces that continue one another across gaps of up to 2 mm are then joined: 6 pieces.
+    // pieces that continue one another across gaps of up to 2 mm are then joined: 6 pieces. Whether a
+    // gap is left to bridge depends on the sheet: one piece was joined until the sheet field merged
+    // its close points (0055), none since (the piece is removed as under 0.5 % of the largest), 6
+    // pieces either way; the joining itself is tested in `mesh::tests`.
     let within_30 = number_after("of the walls,");
     let pieces = number_after("triangles,");
     assert!(
         within_30 >= 92.0 && pieces <= 8.0,
         "{within_30} % in {pieces} pieces"
-    );
-    assert!(
-        stdout.contains("joined to a neighbour across a gap"),
-        "{stdout}"
     );
     let mesh = echosurf::io::read_mesh(&out.join("duck_surface.ply")).unwrap();
     assert!(mesh.topology().is_oriented_manifold());

@@ -6,10 +6,11 @@
 //! narrower than about twice the reach, and gives one sheet where the points form several close layers
 //! facing the same way. Points closer than `h / 2` whose normals agree are summed as one point weighted
 //! by their count (the same field to well within the sheet's accuracy, far fewer terms per evaluation
-//! where the points are dense). The field is undefined (NaN) farther than `reach_mm` from every point, so a sheet
-//! ends about `reach_mm` past its last point instead of running on along its tangent plane. Gaps between
-//! pieces of one sheet are also bridged over up to `bridge_mm` in the sheet's plane: where points lie
-//! around a spot on opposite sides and it sits on their common plane (see [`SheetOptions::bridge_mm`]).
+//! where the points are dense). The field is undefined (NaN) farther than `reach_mm` from every given
+//! point, so a sheet ends about `reach_mm` past its last point instead of running on along its tangent
+//! plane. Gaps between pieces of one sheet are also bridged over up to `bridge_mm` in the sheet's
+//! plane: where points lie around a spot on opposite sides and it sits on their common plane (see
+//! [`SheetOptions::bridge_mm`]).
 
 use glam::DVec3;
 use rayon::prelude::*;
