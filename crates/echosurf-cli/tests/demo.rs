@@ -94,7 +94,6 @@ fn demo_writes_everything_and_its_ridge_sheet_is_accurate() {
     // No piece left is under half a percent of the largest's area (specks beside the duck).
     assert_eq!(report["sheets"][0]["min_piece_share_of_largest"], 0.005);
     assert_eq!(mesh.clone().remove_minor_components(0.0, 0.005), 0);
-    assert!(report["sheets"][0]["bridged_pieces"].as_u64().unwrap() >= 1);
     assert!(
         stdout.contains("farther than 1.5 mm from an echo removed"),
         "{stdout}"
