@@ -493,7 +493,7 @@ mod tests {
     #[test]
     fn merged_points_give_the_field_of_all_points_and_end_where_they_end() {
         // A jittered cap of a 6 mm sphere (up to 50 degrees from its pole) sampled every ~0.1 mm, with
-        // outward normals tilted by up to 10 degrees: merging leaves a fraction of the points, the same
+        // outward normals tilted by up to 5 degrees: merging leaves a fraction of the points, the same
         // values to a few micrometres and the same NaN beyond the cap's rim.
         let (mut points, mut normals) = (Vec::new(), Vec::new());
         let (radius, step_mm) = (6.0, 0.1);
