@@ -253,6 +253,9 @@ fn extract_from_prepared(
         .iter()
         .map(|&level| SheetUsed::iso_surface(level))
         .collect();
+    // The frames' echo crests extend a ridge sheet (not on a bone sweep). Finding them (per frame, in
+    // parallel) runs beside drawing the sheets, whose sequential steps leave a core idle.
+    let mut crests = None;
     if options.sheet != Sheet::Iso {
         let beams = FrameBeams::new(sequence, &prepared.poses, trust_distance_mm);
         let ridge = RidgeInputs {
@@ -263,28 +266,30 @@ fn extract_from_prepared(
             levels: prepared.levels,
             bone_sweep: prepared.counts.bone_sweep,
         };
-        meter.stage("ridge", || {
-            move_onto_echo_ridges(&mut meshes, &mut sheets, &ridge, options)
+        crests = meter.stage("ridge", || {
+            let ridges = echo_ridges_to_draw(&meshes, &mut sheets, &ridge, options);
+            let find_crests = ridges.iter().any(Option::is_some)
+                && !prepared.counts.bone_sweep
+                && options.image_crests.enabled;
+            let (drawn, crests) = rayon::join(
+                || draw_echo_ridge_sheets(&mut meshes, &mut sheets, &ridges, &ridge, options),
+                || {
+                    find_crests.then(|| {
+                        oriented_echo_crests(
+                            sequence,
+                            &prepared.poses,
+                            calibration.and_then(|c| c.clip),
+                            options.segment.detect_data_region,
+                            &options.image_crests,
+                            crest_cache,
+                        )
+                    })
+                },
+            );
+            drawn?;
+            crests.transpose()
         })?;
     }
-    // The frames' echo crests, when a ridge sheet was drawn and the sweep is not bone.
-    let crests = if sheets.iter().any(|s| s.sheet == Sheet::EchoRidge)
-        && !prepared.counts.bone_sweep
-        && options.image_crests.enabled
-    {
-        Some(meter.stage("crests", || {
-            oriented_echo_crests(
-                sequence,
-                &prepared.poses,
-                calibration.and_then(|c| c.clip),
-                options.segment.detect_data_region,
-                &options.image_crests,
-                crest_cache,
-            )
-        })?)
-    } else {
-        None
-    };
     let extension = crests.as_ref().map(|crests| CrestExtension {
         crests,
         domain: &domain,

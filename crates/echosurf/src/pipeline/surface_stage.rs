@@ -256,26 +256,45 @@ pub(super) fn oriented_echo_crests(
     Ok(orient_crests(&placed, options.normal_radius_mm))
 }
 
-/// Replaces each level's iso-surface by one sheet on its echoes' ridges, extended by the ridges of the
-/// weaker echoes that continue them (`--sheet ridge`; with `--sheet auto`, only where enough of the
-/// iso-surface's probe side reached a ridge).
-pub(super) fn move_onto_echo_ridges(
+/// Each level's echo ridges on the probe side of its iso-surface ([`proximal_sheet_on_ridge`]), where
+/// its ridge sheet is to be drawn (`--sheet ridge`; with `--sheet auto`, only where enough of the
+/// iso-surface's probe side reached a ridge); `None` keeps the iso-surface.
+pub(super) fn echo_ridges_to_draw(
+    meshes: &[Mesh],
+    sheets: &mut [SheetUsed],
+    inputs: &RidgeInputs,
+    options: &ExtractOptions,
+) -> Vec<Option<Mesh>> {
+    let beam = |x: DVec3| inputs.beams.beam_at(x);
+    meshes
+        .iter()
+        .zip(sheets)
+        .map(|(mesh, used)| {
+            let (ridge, stats) =
+                proximal_sheet_on_ridge(mesh, inputs.model, &beam, &RidgeOptions::default());
+            used.ridge_reached_share = Some(stats.reached_share());
+            let keep_iso = options.sheet == Sheet::Auto
+                && !inputs.bone_sweep
+                && stats.reached_share() < AUTO_RIDGE_MIN_REACHED_SHARE;
+            (!keep_iso).then_some(ridge)
+        })
+        .collect()
+}
+
+/// Replaces the iso-surface of each level with a ridge (from [`echo_ridges_to_draw`]) by one sheet
+/// through its echoes' ridges, extended by the ridges of the weaker echoes that continue them.
+pub(super) fn draw_echo_ridge_sheets(
     meshes: &mut [Mesh],
     sheets: &mut [SheetUsed],
+    ridges: &[Option<Mesh>],
     inputs: &RidgeInputs,
     options: &ExtractOptions,
 ) -> Result<()> {
     let beam = |x: DVec3| inputs.beams.beam_at(x);
-    for (mesh, used) in meshes.iter_mut().zip(sheets) {
-        let (ridge, stats) =
-            proximal_sheet_on_ridge(mesh, inputs.model, &beam, &RidgeOptions::default());
-        used.ridge_reached_share = Some(stats.reached_share());
-        if options.sheet == Sheet::Auto
-            && !inputs.bone_sweep
-            && stats.reached_share() < AUTO_RIDGE_MIN_REACHED_SHARE
-        {
+    for ((mesh, used), ridge) in meshes.iter_mut().zip(sheets).zip(ridges) {
+        let Some(ridge) = ridge else {
             continue;
-        }
+        };
         let (mut sheet, _) = sheet_through_points(
             &ridge.vertices,
             &ridge.normals,
