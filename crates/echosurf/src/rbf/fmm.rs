@@ -17,7 +17,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::kernel::sum_r;
+use super::kernel::{sum_r, sum_r_scatter};
 use super::tree::{flatten_lists, split_by_sizes};
 
 /// Interpolation order and SVD cut-off of one FMM.
@@ -100,6 +100,12 @@ pub(crate) struct Fmm {
     sources: Option<Sources>,
     near_offsets: Vec<u32>,
     near: Vec<u32>,
+    /// Self products only (no [`Sources`]): for each entry of `near` joining two different leaves, where
+    /// that pair's buffer starts among the pair buffers (the lower-numbered leaf's pass adds the pair's
+    /// terms for the higher-numbered leaf's points there), and where each leaf's own pair buffers start
+    /// (CSR). Empty with sources.
+    near_pair_buffer: Vec<usize>,
+    pair_buffer_start: Vec<usize>,
     root_lo: DVec3,
     root_side: f64,
     /// Compression basis, row-major `p^3 x rank`.
@@ -238,7 +244,14 @@ impl Fmm {
                 let source_points: Option<Vec<DVec3>> =
                     sources.map(|s| s.iter().map(|&i| points[i as usize]).collect());
                 let source_points = source_points.as_deref().unwrap_or(points);
-                choose_leaf_depth(points, source_points, root_lo, side, p, rank)
+                let pairs_summed_once = sources.is_none();
+                choose_leaf_depth(
+                    points,
+                    source_points,
+                    (root_lo, side),
+                    (p, rank),
+                    pairs_summed_once,
+                )
             }
         };
         let mut keyed: Vec<(u64, u32)> = points
@@ -370,6 +383,11 @@ impl Fmm {
             })
             .collect();
         let (near_offsets, near) = flatten_lists(near_lists);
+        let (near_pair_buffer, pair_buffer_start) = if sources.is_none() {
+            pair_buffers(&leaf_start, &near_offsets, &near)
+        } else {
+            (Vec::new(), Vec::new())
+        };
 
         let cheb = Cheb::new(p);
         let transfer = [-1.0, 1.0].map(|s: f64| {
@@ -403,6 +421,8 @@ impl Fmm {
             sources,
             near_offsets,
             near,
+            near_pair_buffer,
+            pair_buffer_start,
             root_lo,
             root_side: side,
             basis,
@@ -616,28 +636,90 @@ impl Fmm {
             .map(|b| (self.leaf_start[b + 1] - self.leaf_start[b]) as usize)
             .collect();
         let mut values = vec![0.0; n];
-        let chunks = split_by_sizes(&mut values, &sizes);
         let leaf_local = &local[leaf];
-        chunks.into_par_iter().enumerate().for_each(|(b, vals)| {
+        // Leaf `b`'s values: far field, then the near leaves in list order. With pair buffers (self
+        // products), summing a near leaf numbered above `b` also leaves the terms of `b`'s points for
+        // that leaf in their pair's buffer, and a near leaf numbered below `b` is left to its own pass.
+        let leaf_values = |b: usize, vals: &mut [f64], mut pairs: Option<&mut [f64]>| {
             let c = self.box_centre(leaf, keys[b]);
             let mut w = [vec![0.0; self.p], vec![0.0; self.p], vec![0.0; self.p]];
             let first = self.leaf_start[b] as usize;
             // The leaf depth is at least 2, so every leaf has a local expansion.
             let loc = &leaf_local[b * p3..(b + 1) * p3];
-            let near = &self.near[self.near_offsets[b] as usize..self.near_offsets[b + 1] as usize];
+            let near_range = self.near_offsets[b] as usize..self.near_offsets[b + 1] as usize;
+            let near = &self.near[near_range.clone()];
+            // With pair buffers, the leaf's own pairs are summed once too: point `i` takes the terms
+            // of the points after it and leaves its own term for them in `own`.
+            let mut own = vec![0.0; if pairs.is_some() { vals.len() } else { 0 }];
             for (i, v) in (first..).zip(vals.iter_mut()) {
                 let x = DVec3::new(self.xs[i], self.ys[i], self.zs[i]);
                 self.point_weights(x, c, h, &mut w);
                 let mut s = tensor_dot(&w, loc);
-                for &nb in near {
+                for (k, &nb) in near_range.clone().zip(near) {
                     let r = start[nb as usize] as usize..start[nb as usize + 1] as usize;
-                    if !r.is_empty() {
+                    if r.is_empty() {
+                        continue;
+                    }
+                    let Some(buffers) = pairs.as_deref_mut() else {
                         s += sum_r(x, &xs[r.clone()], &ys[r.clone()], &zs[r.clone()], &q[r]);
+                        continue;
+                    };
+                    let (nb, r) = (nb as usize, if nb as usize == b { i + 1..r.end } else { r });
+                    let sources = (
+                        &xs[r.clone()],
+                        &ys[r.clone()],
+                        &zs[r.clone()],
+                        &q[r.clone()],
+                    );
+                    if nb == b {
+                        s += sum_r_scatter(x, sources, q[i], &mut own[i + 1 - first..]);
+                    } else if nb > b {
+                        let at = self.near_pair_buffer[k] - self.pair_buffer_start[b];
+                        s += sum_r_scatter(x, sources, q[i], &mut buffers[at..at + r.len()]);
                     }
                 }
                 *v = s;
             }
-        });
+            for (v, o) in vals.iter_mut().zip(&own) {
+                *v += o;
+            }
+        };
+        if self.pair_buffer_start.is_empty() {
+            let chunks = split_by_sizes(&mut values, &sizes);
+            chunks
+                .into_par_iter()
+                .enumerate()
+                .for_each(|(b, vals)| leaf_values(b, vals, None));
+        } else {
+            // Each pair of adjacent leaves is summed once: the lower-numbered leaf's pass puts the
+            // pair's terms for the other leaf's points in the pair's buffer, and each leaf then adds
+            // its buffers from lower-numbered leaves, in its near list's order.
+            let starts = &self.pair_buffer_start;
+            let mut buffers = vec![0.0; starts[starts.len() - 1]];
+            let buffer_sizes: Vec<usize> = starts.windows(2).map(|w| w[1] - w[0]).collect();
+            split_by_sizes(&mut values, &sizes)
+                .into_par_iter()
+                .zip(split_by_sizes(&mut buffers, &buffer_sizes))
+                .enumerate()
+                .for_each(|(b, (vals, pairs))| leaf_values(b, vals, Some(pairs)));
+            let buffers = &buffers;
+            split_by_sizes(&mut values, &sizes)
+                .into_par_iter()
+                .enumerate()
+                .for_each(|(b, vals)| {
+                    let near_range =
+                        self.near_offsets[b] as usize..self.near_offsets[b + 1] as usize;
+                    for k in near_range {
+                        if (self.near[k] as usize) < b {
+                            let at = self.near_pair_buffer[k];
+                            let len = vals.len();
+                            for (v, &t) in vals.iter_mut().zip(&buffers[at..at + len]) {
+                                *v += t;
+                            }
+                        }
+                    }
+                });
+        }
         for (&i, &v) in self.order.iter().zip(&values) {
             out[i as usize] = v;
         }
@@ -681,15 +763,18 @@ impl Fmm {
             + boxes * (8 + 8 + 4 + 4)
             + pairs * 8
             + self.near.len() * 4
+            + (self.near_pair_buffer.len() + self.pair_buffer_start.len()) * 8
             + self.m2l.iter().map(|m| m.len() * 8).sum::<usize>()
             + self.basis.len() * 8
     }
 
-    /// Bytes one product allocates: node charges and potentials per box, compressed, and the values.
+    /// Bytes one product allocates: node charges and potentials per box, compressed, the values and
+    /// the near field's pair buffers.
     pub fn product_bytes(&self) -> usize {
         let boxes: usize = self.levels.iter().map(|l| l.keys.len()).sum();
         let p3 = self.p * self.p * self.p;
-        boxes * (2 * p3 + self.rank) * 8 + self.len() * 16
+        let pair_buffers = self.pair_buffer_start.last().copied().unwrap_or(0);
+        boxes * (2 * p3 + self.rank) * 8 + self.len() * 16 + pair_buffers * 8
     }
 }
 
@@ -782,15 +867,55 @@ fn for_each_neighbour(keys: &[u64], c: [i64; 3], mut f: impl FnMut(usize)) {
     }
 }
 
-/// The leaf depth with the least estimated cost of a product from `sources` to `points`: near point
-/// pairs plus far-field work.
+/// For a self product: per entry of the near lists (CSR `near_offsets`, `near`) that joins two
+/// different leaves, the start of that pair's buffer (as many values as the higher-numbered leaf has
+/// points), the buffers ordered by their lower-numbered leaf, and the start of each leaf's buffers.
+fn pair_buffers(
+    leaf_start: &[u32],
+    near_offsets: &[u32],
+    near: &[u32],
+) -> (Vec<usize>, Vec<usize>) {
+    let leaves = near_offsets.len() - 1;
+    let points = |b: usize| (leaf_start[b + 1] - leaf_start[b]) as usize;
+    let entries = |b: usize| near_offsets[b] as usize..near_offsets[b + 1] as usize;
+    let mut at = vec![usize::MAX; near.len()];
+    let mut starts = Vec::with_capacity(leaves + 1);
+    let mut total = 0usize;
+    for a in 0..leaves {
+        starts.push(total);
+        for k in entries(a) {
+            let b = near[k] as usize;
+            if b > a {
+                at[k] = total;
+                total += points(b);
+            }
+        }
+    }
+    starts.push(total);
+    for b in 0..leaves {
+        for k in entries(b) {
+            let a = near[k] as usize;
+            if a < b {
+                // Adjacency is symmetric, so `b` is in `a`'s list.
+                let upper = entries(a)
+                    .find(|&j| near[j] as usize == b)
+                    .expect("adjacent leaves list each other");
+                at[k] = at[upper];
+            }
+        }
+    }
+    (at, starts)
+}
+
+/// The leaf depth with the least estimated cost of a product from `sources` to `points` (an octree of
+/// cube `(root_lo, side)`, `(p, rank)` the expansions): near point pairs, each summed once for both
+/// of its points when `pairs_summed_once` (the self product), plus far-field work.
 fn choose_leaf_depth(
     points: &[DVec3],
     sources: &[DVec3],
-    root_lo: DVec3,
-    side: f64,
-    p: usize,
-    rank: usize,
+    (root_lo, side): (DVec3, f64),
+    (p, rank): (usize, usize),
+    pairs_summed_once: bool,
 ) -> usize {
     let p3 = (p * p * p) as f64;
     let occupied = |points: &[DVec3], depth: usize| {
@@ -819,9 +944,12 @@ fn choose_leaf_depth(
                 near_pairs += (n * source_boxes[i].1) as f64;
             });
         }
+        if pairs_summed_once {
+            near_pairs *= 0.5;
+        }
         // In units of a near pair: each box (over all levels, ~1.15 per leaf) takes ~100 translations of
-        // rank^2 multiply-adds, at about half a near pair each.
-        let far = boxes.len() as f64 * 1.15 * 100.0 * (rank * rank) as f64 * 0.5;
+        // rank^2 multiply-adds, at about a tenth of a near pair each (docs/decisions/0058).
+        let far = boxes.len() as f64 * 1.15 * 100.0 * (rank * rank) as f64 * 0.1;
         let cost = near_pairs + far + (points.len() + sources.len()) as f64 * p3;
         if cost < best.0 {
             best = (cost, depth);

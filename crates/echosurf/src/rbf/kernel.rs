@@ -17,6 +17,9 @@ use glam::DVec3;
 /// Accumulator lanes: one AVX-512 register of f64, two AVX2 registers.
 const LANES: usize = 8;
 
+/// Charged centres as SoA slices of equal length: x, y, z and charge.
+pub(crate) type Charges<'a> = (&'a [f64], &'a [f64], &'a [f64], &'a [f64]);
+
 /// `sum_j q_j |t - s_j|`.
 #[inline]
 pub(crate) fn sum_r(t: DVec3, sx: &[f64], sy: &[f64], sz: &[f64], q: &[f64]) -> f64 {
@@ -54,6 +57,32 @@ pub(crate) fn sum_r_grad(t: DVec3, sx: &[f64], sy: &[f64], sz: &[f64], q: &[f64]
         }
     }
     sum_r_grad_scalar(t, sx, sy, sz, q)
+}
+
+/// `sum_j q_j |t - s_j|`, as [`sum_r`] to the bit, while adding `q_t |t - s_j|` to `scatter[j]`: the
+/// kernel is symmetric, so one pass over a pair of point sets serves both directions (the FMM's near
+/// field) with half the square roots.
+#[inline]
+pub(crate) fn sum_r_scatter(
+    t: DVec3,
+    (sx, sy, sz, q): Charges<'_>,
+    q_t: f64,
+    scatter: &mut [f64],
+) -> f64 {
+    let n = q.len();
+    let (sx, sy, sz, scatter) = (&sx[..n], &sy[..n], &sz[..n], &mut scatter[..n]);
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            // SAFETY: the CPU supports AVX-512F (checked above); slices have equal lengths.
+            return unsafe { x86::sum_r_scatter_avx512(t, (sx, sy, sz, q), q_t, scatter) };
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked above); slices have equal lengths.
+            return unsafe { x86::sum_r_scatter_avx2(t, (sx, sy, sz, q), q_t, scatter) };
+        }
+    }
+    sum_r_scatter_scalar(t, (sx, sy, sz, q), q_t, scatter)
 }
 
 /// The fixed reduction of the lanes, shared by every variant.
@@ -111,6 +140,50 @@ fn sum_r_scalar(t: DVec3, sx: &[f64], sy: &[f64], sz: &[f64], q: &[f64]) -> f64 
     reduce(&acc)
 }
 
+/// Adds `q_t |t - s_j|` for centres `from..n` to `scatter` and `q_j |t - s_j|` to lane 0, in order.
+#[inline(always)]
+fn tail_r_scatter(
+    t: DVec3,
+    (sx, sy, sz, q): Charges<'_>,
+    q_t: f64,
+    scatter: &mut [f64],
+    from: usize,
+    acc: &mut f64,
+) {
+    for j in from..q.len() {
+        let (_, _, _, r) = term_r(t, sx[j], sy[j], sz[j]);
+        *acc += q[j] * r;
+        scatter[j] += q_t * r;
+    }
+}
+
+fn sum_r_scatter_scalar(
+    t: DVec3,
+    (sx, sy, sz, q): Charges<'_>,
+    q_t: f64,
+    scatter: &mut [f64],
+) -> f64 {
+    let mut acc = [0.0f64; LANES];
+    let blocks = q.len() / LANES;
+    for b in 0..blocks {
+        for (l, a) in acc.iter_mut().enumerate() {
+            let j = b * LANES + l;
+            let (_, _, _, r) = term_r(t, sx[j], sy[j], sz[j]);
+            *a += q[j] * r;
+            scatter[j] += q_t * r;
+        }
+    }
+    tail_r_scatter(
+        t,
+        (sx, sy, sz, q),
+        q_t,
+        scatter,
+        blocks * LANES,
+        &mut acc[0],
+    );
+    reduce(&acc)
+}
+
 fn sum_r_grad_scalar(t: DVec3, sx: &[f64], sy: &[f64], sz: &[f64], q: &[f64]) -> (f64, DVec3) {
     let mut v = [0.0f64; LANES];
     let mut gx = [0.0f64; LANES];
@@ -142,7 +215,7 @@ fn sum_r_grad_scalar(t: DVec3, sx: &[f64], sy: &[f64], sz: &[f64], q: &[f64]) ->
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{LANES, reduce, tail_r, tail_r_grad};
+    use super::{Charges, LANES, reduce, tail_r, tail_r_grad, tail_r_scatter};
     use glam::DVec3;
     use std::arch::x86_64::*;
 
@@ -187,6 +260,131 @@ mod x86 {
         // SAFETY: `lanes` holds 8 f64.
         unsafe { _mm512_storeu_pd(lanes.as_mut_ptr(), acc) };
         tail_r(t, sx, sy, sz, q, blocks * LANES, &mut lanes[0]);
+        reduce(&lanes)
+    }
+
+    /// # Safety
+    /// The CPU must support AVX-512F; all slices (and `scatter`) must have `q.len()` elements.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn sum_r_scatter_avx512(
+        t: DVec3,
+        (sx, sy, sz, q): Charges<'_>,
+        q_t: f64,
+        scatter: &mut [f64],
+    ) -> f64 {
+        let (tx, ty, tz) = (
+            _mm512_set1_pd(t.x),
+            _mm512_set1_pd(t.y),
+            _mm512_set1_pd(t.z),
+        );
+        let qt = _mm512_set1_pd(q_t);
+        let mut acc = _mm512_setzero_pd();
+        let blocks = q.len() / LANES;
+        for b in 0..blocks {
+            let j = b * LANES;
+            // SAFETY: j + LANES <= len for every slice.
+            let (x, y, z, w, s) = unsafe {
+                (
+                    _mm512_loadu_pd(sx.as_ptr().add(j)),
+                    _mm512_loadu_pd(sy.as_ptr().add(j)),
+                    _mm512_loadu_pd(sz.as_ptr().add(j)),
+                    _mm512_loadu_pd(q.as_ptr().add(j)),
+                    _mm512_loadu_pd(scatter.as_ptr().add(j)),
+                )
+            };
+            let dx = _mm512_sub_pd(tx, x);
+            let dy = _mm512_sub_pd(ty, y);
+            let dz = _mm512_sub_pd(tz, z);
+            let d2 = _mm512_add_pd(
+                _mm512_add_pd(_mm512_mul_pd(dx, dx), _mm512_mul_pd(dy, dy)),
+                _mm512_mul_pd(dz, dz),
+            );
+            let r = _mm512_sqrt_pd(d2);
+            acc = _mm512_add_pd(acc, _mm512_mul_pd(w, r));
+            // SAFETY: j + LANES <= len of `scatter`.
+            unsafe {
+                _mm512_storeu_pd(
+                    scatter.as_mut_ptr().add(j),
+                    _mm512_add_pd(s, _mm512_mul_pd(qt, r)),
+                )
+            };
+        }
+        let mut lanes = [0.0f64; LANES];
+        // SAFETY: `lanes` holds 8 f64.
+        unsafe { _mm512_storeu_pd(lanes.as_mut_ptr(), acc) };
+        tail_r_scatter(
+            t,
+            (sx, sy, sz, q),
+            q_t,
+            scatter,
+            blocks * LANES,
+            &mut lanes[0],
+        );
+        reduce(&lanes)
+    }
+
+    /// # Safety
+    /// The CPU must support AVX2; all slices (and `scatter`) must have `q.len()` elements.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn sum_r_scatter_avx2(
+        t: DVec3,
+        (sx, sy, sz, q): Charges<'_>,
+        q_t: f64,
+        scatter: &mut [f64],
+    ) -> f64 {
+        let (tx, ty, tz) = (
+            _mm256_set1_pd(t.x),
+            _mm256_set1_pd(t.y),
+            _mm256_set1_pd(t.z),
+        );
+        let qt = _mm256_set1_pd(q_t);
+        let mut acc = [_mm256_setzero_pd(); 2];
+        let blocks = q.len() / LANES;
+        for b in 0..blocks {
+            for (h, a) in acc.iter_mut().enumerate() {
+                let j = b * LANES + 4 * h;
+                // SAFETY: j + 4 <= len for every slice.
+                let (x, y, z, w, s) = unsafe {
+                    (
+                        _mm256_loadu_pd(sx.as_ptr().add(j)),
+                        _mm256_loadu_pd(sy.as_ptr().add(j)),
+                        _mm256_loadu_pd(sz.as_ptr().add(j)),
+                        _mm256_loadu_pd(q.as_ptr().add(j)),
+                        _mm256_loadu_pd(scatter.as_ptr().add(j)),
+                    )
+                };
+                let dx = _mm256_sub_pd(tx, x);
+                let dy = _mm256_sub_pd(ty, y);
+                let dz = _mm256_sub_pd(tz, z);
+                let d2 = _mm256_add_pd(
+                    _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy)),
+                    _mm256_mul_pd(dz, dz),
+                );
+                let r = _mm256_sqrt_pd(d2);
+                *a = _mm256_add_pd(*a, _mm256_mul_pd(w, r));
+                // SAFETY: j + 4 <= len of `scatter`.
+                unsafe {
+                    _mm256_storeu_pd(
+                        scatter.as_mut_ptr().add(j),
+                        _mm256_add_pd(s, _mm256_mul_pd(qt, r)),
+                    )
+                };
+            }
+        }
+        let mut lanes = [0.0f64; LANES];
+        // SAFETY: `lanes` holds 8 f64.
+        unsafe {
+            _mm256_storeu_pd(lanes.as_mut_ptr(), acc[0]);
+            _mm256_storeu_pd(lanes.as_mut_ptr().add(4), acc[1]);
+        }
+        tail_r_scatter(
+            t,
+            (sx, sy, sz, q),
+            q_t,
+            scatter,
+            blocks * LANES,
+            &mut lanes[0],
+        );
         reduce(&lanes)
     }
 
@@ -443,6 +641,58 @@ mod tests {
             let tol = 1e-14 * (scale + 1.0) * (n as f64 + 1.0);
             assert!((scalar - naive).abs() <= tol, "{n}: {scalar} vs {naive}");
             assert!((g - naive_g).length() <= tol, "{n}: {g} vs {naive_g}");
+        }
+    }
+
+    /// The scattering sum returns `sum_r`'s bits on every instruction set, and adds `q_t |t - s_j|` to
+    /// every `scatter[j]` with the same bits on every instruction set (the FMM's near field relies on
+    /// both for its determinism).
+    #[test]
+    fn scatter_variants_are_bit_identical_and_add_the_transposed_terms() {
+        for n in [0, 1, 7, 8, 9, 64, 203] {
+            let (t, [sx, sy, sz, q]) = case(n);
+            let q_t = -2.75;
+            let start: Vec<f64> = (0..n).map(|j| (j as f64 * 0.7).cos()).collect();
+            let mut scalar_out = start.clone();
+            let sum = sum_r_scatter_scalar(t, (&sx, &sy, &sz, &q), q_t, &mut scalar_out);
+            assert_eq!(sum.to_bits(), sum_r_scalar(t, &sx, &sy, &sz, &q).to_bits());
+            for j in 0..n {
+                let r = (t - DVec3::new(sx[j], sy[j], sz[j])).length();
+                let expected = start[j] + q_t * r;
+                assert!(
+                    (scalar_out[j] - expected).abs() <= 1e-13 * (expected.abs() + 1.0),
+                    "{n}/{j}: {} vs {expected}",
+                    scalar_out[j]
+                );
+            }
+            let mut dispatched = start.clone();
+            let s = sum_r_scatter(t, (&sx, &sy, &sz, &q), q_t, &mut dispatched);
+            assert_eq!(s.to_bits(), sum.to_bits());
+            assert_eq!(
+                dispatched.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                scalar_out.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+            #[cfg(target_arch = "x86_64")]
+            {
+                type Variant = unsafe fn(DVec3, Charges<'_>, f64, &mut [f64]) -> f64;
+                let mut variants: Vec<Variant> = Vec::new();
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    variants.push(x86::sum_r_scatter_avx2);
+                }
+                if std::arch::is_x86_feature_detected!("avx512f") {
+                    variants.push(x86::sum_r_scatter_avx512);
+                }
+                for variant in variants {
+                    let mut out = start.clone();
+                    // SAFETY: the variant's instruction set is present; equal lengths.
+                    let v = unsafe { variant(t, (&sx, &sy, &sz, &q), q_t, &mut out) };
+                    assert_eq!(v.to_bits(), sum.to_bits());
+                    assert_eq!(
+                        out.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                        scalar_out.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+                    );
+                }
+            }
         }
     }
 }
