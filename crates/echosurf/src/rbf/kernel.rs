@@ -219,6 +219,67 @@ mod x86 {
     use glam::DVec3;
     use std::arch::x86_64::*;
 
+    /// The offsets `t - s_j`, distances and charges of the 8 centres from `j`, with `t` broadcast: the
+    /// block every AVX-512 sum starts from.
+    ///
+    /// # Safety
+    /// The CPU must support AVX-512F; `j + 8` must not exceed the length of any slice.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn offsets_avx512(
+        [tx, ty, tz]: [__m512d; 3],
+        (sx, sy, sz, q): Charges<'_>,
+        j: usize,
+    ) -> ([__m512d; 3], __m512d, __m512d) {
+        // SAFETY: j + 8 <= len for every slice (the caller's contract).
+        let (x, y, z, w) = unsafe {
+            (
+                _mm512_loadu_pd(sx.as_ptr().add(j)),
+                _mm512_loadu_pd(sy.as_ptr().add(j)),
+                _mm512_loadu_pd(sz.as_ptr().add(j)),
+                _mm512_loadu_pd(q.as_ptr().add(j)),
+            )
+        };
+        let dx = _mm512_sub_pd(tx, x);
+        let dy = _mm512_sub_pd(ty, y);
+        let dz = _mm512_sub_pd(tz, z);
+        let d2 = _mm512_add_pd(
+            _mm512_add_pd(_mm512_mul_pd(dx, dx), _mm512_mul_pd(dy, dy)),
+            _mm512_mul_pd(dz, dz),
+        );
+        ([dx, dy, dz], _mm512_sqrt_pd(d2), w)
+    }
+
+    /// [`offsets_avx512`] for the 4 centres from `j`, with AVX2.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2; `j + 4` must not exceed the length of any slice.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    unsafe fn offsets_avx2(
+        [tx, ty, tz]: [__m256d; 3],
+        (sx, sy, sz, q): Charges<'_>,
+        j: usize,
+    ) -> ([__m256d; 3], __m256d, __m256d) {
+        // SAFETY: j + 4 <= len for every slice (the caller's contract).
+        let (x, y, z, w) = unsafe {
+            (
+                _mm256_loadu_pd(sx.as_ptr().add(j)),
+                _mm256_loadu_pd(sy.as_ptr().add(j)),
+                _mm256_loadu_pd(sz.as_ptr().add(j)),
+                _mm256_loadu_pd(q.as_ptr().add(j)),
+            )
+        };
+        let dx = _mm256_sub_pd(tx, x);
+        let dy = _mm256_sub_pd(ty, y);
+        let dz = _mm256_sub_pd(tz, z);
+        let d2 = _mm256_add_pd(
+            _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy)),
+            _mm256_mul_pd(dz, dz),
+        );
+        ([dx, dy, dz], _mm256_sqrt_pd(d2), w)
+    }
+
     /// # Safety
     /// The CPU must support AVX-512F; all slices must have `q.len()` elements.
     #[target_feature(enable = "avx512f")]
@@ -239,22 +300,8 @@ mod x86 {
         for b in 0..blocks {
             let j = b * LANES;
             // SAFETY: j + LANES <= len for every slice.
-            let (x, y, z, w) = unsafe {
-                (
-                    _mm512_loadu_pd(sx.as_ptr().add(j)),
-                    _mm512_loadu_pd(sy.as_ptr().add(j)),
-                    _mm512_loadu_pd(sz.as_ptr().add(j)),
-                    _mm512_loadu_pd(q.as_ptr().add(j)),
-                )
-            };
-            let dx = _mm512_sub_pd(tx, x);
-            let dy = _mm512_sub_pd(ty, y);
-            let dz = _mm512_sub_pd(tz, z);
-            let d2 = _mm512_add_pd(
-                _mm512_add_pd(_mm512_mul_pd(dx, dx), _mm512_mul_pd(dy, dy)),
-                _mm512_mul_pd(dz, dz),
-            );
-            acc = _mm512_add_pd(acc, _mm512_mul_pd(w, _mm512_sqrt_pd(d2)));
+            let (_, r, w) = unsafe { offsets_avx512([tx, ty, tz], (sx, sy, sz, q), j) };
+            acc = _mm512_add_pd(acc, _mm512_mul_pd(w, r));
         }
         let mut lanes = [0.0f64; LANES];
         // SAFETY: `lanes` holds 8 f64.
@@ -283,23 +330,12 @@ mod x86 {
         for b in 0..blocks {
             let j = b * LANES;
             // SAFETY: j + LANES <= len for every slice.
-            let (x, y, z, w, s) = unsafe {
+            let ((_, r, w), s) = unsafe {
                 (
-                    _mm512_loadu_pd(sx.as_ptr().add(j)),
-                    _mm512_loadu_pd(sy.as_ptr().add(j)),
-                    _mm512_loadu_pd(sz.as_ptr().add(j)),
-                    _mm512_loadu_pd(q.as_ptr().add(j)),
+                    offsets_avx512([tx, ty, tz], (sx, sy, sz, q), j),
                     _mm512_loadu_pd(scatter.as_ptr().add(j)),
                 )
             };
-            let dx = _mm512_sub_pd(tx, x);
-            let dy = _mm512_sub_pd(ty, y);
-            let dz = _mm512_sub_pd(tz, z);
-            let d2 = _mm512_add_pd(
-                _mm512_add_pd(_mm512_mul_pd(dx, dx), _mm512_mul_pd(dy, dy)),
-                _mm512_mul_pd(dz, dz),
-            );
-            let r = _mm512_sqrt_pd(d2);
             acc = _mm512_add_pd(acc, _mm512_mul_pd(w, r));
             // SAFETY: j + LANES <= len of `scatter`.
             unsafe {
@@ -344,23 +380,12 @@ mod x86 {
             for (h, a) in acc.iter_mut().enumerate() {
                 let j = b * LANES + 4 * h;
                 // SAFETY: j + 4 <= len for every slice.
-                let (x, y, z, w, s) = unsafe {
+                let ((_, r, w), s) = unsafe {
                     (
-                        _mm256_loadu_pd(sx.as_ptr().add(j)),
-                        _mm256_loadu_pd(sy.as_ptr().add(j)),
-                        _mm256_loadu_pd(sz.as_ptr().add(j)),
-                        _mm256_loadu_pd(q.as_ptr().add(j)),
+                        offsets_avx2([tx, ty, tz], (sx, sy, sz, q), j),
                         _mm256_loadu_pd(scatter.as_ptr().add(j)),
                     )
                 };
-                let dx = _mm256_sub_pd(tx, x);
-                let dy = _mm256_sub_pd(ty, y);
-                let dz = _mm256_sub_pd(tz, z);
-                let d2 = _mm256_add_pd(
-                    _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy)),
-                    _mm256_mul_pd(dz, dz),
-                );
-                let r = _mm256_sqrt_pd(d2);
                 *a = _mm256_add_pd(*a, _mm256_mul_pd(w, r));
                 // SAFETY: j + 4 <= len of `scatter`.
                 unsafe {
@@ -409,22 +434,8 @@ mod x86 {
             for (h, a) in acc.iter_mut().enumerate() {
                 let j = b * LANES + 4 * h;
                 // SAFETY: j + 4 <= len for every slice.
-                let (x, y, z, w) = unsafe {
-                    (
-                        _mm256_loadu_pd(sx.as_ptr().add(j)),
-                        _mm256_loadu_pd(sy.as_ptr().add(j)),
-                        _mm256_loadu_pd(sz.as_ptr().add(j)),
-                        _mm256_loadu_pd(q.as_ptr().add(j)),
-                    )
-                };
-                let dx = _mm256_sub_pd(tx, x);
-                let dy = _mm256_sub_pd(ty, y);
-                let dz = _mm256_sub_pd(tz, z);
-                let d2 = _mm256_add_pd(
-                    _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy)),
-                    _mm256_mul_pd(dz, dz),
-                );
-                *a = _mm256_add_pd(*a, _mm256_mul_pd(w, _mm256_sqrt_pd(d2)));
+                let (_, r, w) = unsafe { offsets_avx2([tx, ty, tz], (sx, sy, sz, q), j) };
+                *a = _mm256_add_pd(*a, _mm256_mul_pd(w, r));
             }
         }
         let mut lanes = [0.0f64; LANES];
@@ -458,22 +469,7 @@ mod x86 {
         for b in 0..blocks {
             let j = b * LANES;
             // SAFETY: j + LANES <= len for every slice.
-            let (x, y, z, w) = unsafe {
-                (
-                    _mm512_loadu_pd(sx.as_ptr().add(j)),
-                    _mm512_loadu_pd(sy.as_ptr().add(j)),
-                    _mm512_loadu_pd(sz.as_ptr().add(j)),
-                    _mm512_loadu_pd(q.as_ptr().add(j)),
-                )
-            };
-            let dx = _mm512_sub_pd(tx, x);
-            let dy = _mm512_sub_pd(ty, y);
-            let dz = _mm512_sub_pd(tz, z);
-            let d2 = _mm512_add_pd(
-                _mm512_add_pd(_mm512_mul_pd(dx, dx), _mm512_mul_pd(dy, dy)),
-                _mm512_mul_pd(dz, dz),
-            );
-            let r = _mm512_sqrt_pd(d2);
+            let ([dx, dy, dz], r, w) = unsafe { offsets_avx512([tx, ty, tz], (sx, sy, sz, q), j) };
             let positive = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(r, zero);
             let inv = _mm512_maskz_div_pd(positive, w, r);
             v = _mm512_add_pd(v, _mm512_mul_pd(w, r));
@@ -518,22 +514,8 @@ mod x86 {
             for (h, [v, gx, gy, gz]) in acc.iter_mut().enumerate() {
                 let j = b * LANES + 4 * h;
                 // SAFETY: j + 4 <= len for every slice.
-                let (x, y, z, w) = unsafe {
-                    (
-                        _mm256_loadu_pd(sx.as_ptr().add(j)),
-                        _mm256_loadu_pd(sy.as_ptr().add(j)),
-                        _mm256_loadu_pd(sz.as_ptr().add(j)),
-                        _mm256_loadu_pd(q.as_ptr().add(j)),
-                    )
-                };
-                let dx = _mm256_sub_pd(tx, x);
-                let dy = _mm256_sub_pd(ty, y);
-                let dz = _mm256_sub_pd(tz, z);
-                let d2 = _mm256_add_pd(
-                    _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy)),
-                    _mm256_mul_pd(dz, dz),
-                );
-                let r = _mm256_sqrt_pd(d2);
+                let ([dx, dy, dz], r, w) =
+                    unsafe { offsets_avx2([tx, ty, tz], (sx, sy, sz, q), j) };
                 let positive = _mm256_cmp_pd::<_CMP_GT_OQ>(r, zero);
                 let inv = _mm256_and_pd(_mm256_div_pd(w, r), positive);
                 *v = _mm256_add_pd(*v, _mm256_mul_pd(w, r));
