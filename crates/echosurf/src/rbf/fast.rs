@@ -35,10 +35,15 @@ use super::trend::{TrendBasis, project_out, trend_coefficients};
 use crate::progress::Progress;
 use crate::{Error, Result};
 
-/// Extra neighbours added to each leaf to form its overlapping subdomain. Measured at 10k samples with
-/// the coarse level: 48 -> 19 iterations, 96 -> 12, 160 -> 6 (100k: 96 -> 28, 160 -> 22 before peeking);
-/// setup cost grows like the cube of the subdomain size (3.5 s of a 60 s fit at 100k).
+/// Extra neighbours added to each leaf to form its overlapping subdomain, up to
+/// [`OVERLAP_REFERENCE_POINTS`] samples. Measured at 10k samples with the coarse level: 48 -> 19
+/// iterations, 96 -> 12, 160 -> 6 (100k: 96 -> 28, 160 -> 22 before peeking).
 const OVERLAP_POINTS: usize = 160;
+/// Above this many samples the overlap grows in proportion to N, so a subdomain keeps its volume as the
+/// samples get denser (docs/decisions/0059-subdomains-grow-with-n.md).
+const OVERLAP_REFERENCE_POINTS: usize = 100_000;
+/// Largest overlap: the local factorisations cost the cube of the subdomain size.
+const OVERLAP_MAX_POINTS: usize = 480;
 const RESTART: usize = 40;
 /// Separation and Chebyshev nodes of the cheap products: the Arnoldi steps' ([`inner_params`]) and the
 /// Richardson residual of a nested coarse level.
@@ -544,6 +549,7 @@ impl Schwarz {
         coarse: Option<&CoarseConfig>,
     ) -> Result<Schwarz> {
         let n = tree.len();
+        let overlap = overlap_points(n);
         let leaves = &tree.leaves;
         let domains: Vec<Option<(Vec<u32>, Vec<f32>)>> = leaves
             .par_iter()
@@ -554,7 +560,7 @@ impl Schwarz {
                     .iter()
                     .fold(DVec3::ZERO, |a, &i| a + tree.point(i as usize))
                     / inner.len().max(1) as f64;
-                let want = (inner.len() + OVERLAP_POINTS).min(n);
+                let want = (inner.len() + overlap).min(n);
                 let mut domain = inner.clone();
                 for j in tree.nearest(centroid, want) {
                     if domain.len() >= want {
@@ -645,6 +651,13 @@ impl Schwarz {
                 }
             });
     }
+}
+
+/// Neighbours added to each leaf's subdomain for a system over `n` points: [`OVERLAP_POINTS`] up to
+/// [`OVERLAP_REFERENCE_POINTS`], then in proportion to `n`, at most [`OVERLAP_MAX_POINTS`].
+pub(super) fn overlap_points(n: usize) -> usize {
+    let scaled = (OVERLAP_POINTS as u128 * n as u128 / OVERLAP_REFERENCE_POINTS as u128) as usize;
+    scaled.clamp(OVERLAP_POINTS, OVERLAP_MAX_POINTS)
 }
 
 /// Rows (for the first `inner` domain points) of the inverse of the local saddle matrix, restricted to the

@@ -547,3 +547,21 @@ fn fmm_products_solve_rough_data_to_the_accuracy_as_the_treecode_does() {
         treecode.iterations
     );
 }
+
+/// Subdomains keep 160 neighbours up to 100k samples, then grow with N (denser samples, same volume)
+/// up to the cap that bounds the local factorisations.
+#[test]
+fn subdomain_overlap_grows_with_the_sample_count_up_to_its_cap() {
+    use super::fast::overlap_points;
+    assert_eq!(overlap_points(1_000), 160);
+    assert_eq!(overlap_points(100_000), 160);
+    assert_eq!(overlap_points(200_000), 320);
+    assert_eq!(overlap_points(300_000), 480);
+    assert_eq!(overlap_points(usize::MAX), 480);
+    let mut last = 0;
+    for n in (0..2_000_000).step_by(25_000) {
+        let o = overlap_points(n);
+        assert!(o >= last, "overlap shrinks at {n}: {o} < {last}");
+        last = o;
+    }
+}
