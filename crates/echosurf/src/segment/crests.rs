@@ -34,9 +34,10 @@ pub struct CrestOptions {
     /// Shortest chain of crests across columns kept (mm).
     pub min_chain_mm: f64,
     /// A crest is kept where its height over its darker side is at least this fraction of the highest
-    /// crest of its chain within [`LOCAL_PEAK_REACH_MM`] across the beam: an echo ends where it has
+    /// crest of its chain within [`LOCAL_PEAK_REACH_MM`] along the chain: an echo ends where it has
     /// fallen to half its peak, not where the lateral blur of its end fades out (a wire's ribbon, a
-    /// wall's rim). 0: off.
+    /// wall's rim). Along the chain, not across the beam, so a wall turned away from the beam is not
+    /// cut where its echo fades with the angle. 0: off.
     pub min_local_peak_fraction: f64,
 }
 
@@ -92,7 +93,7 @@ pub const PROMINENCE_REACH_MM: f64 = 1.0;
 /// past the echo's own blur, within the wall's neighbourhood.
 pub const DARK_SIDE_MM: [f64; 2] = [0.5, 1.5];
 
-/// The strongest crest a crest is compared with lies within this distance (mm) across the beam.
+/// The strongest crest a crest is compared with lies within this distance (mm) along its chain.
 pub const LOCAL_PEAK_REACH_MM: f64 = 1.0;
 
 /// Crests of neighbouring columns chain when their rows are at most this many pixels apart.
@@ -327,14 +328,6 @@ pub fn crests_in_image(
                 return None;
             }
             let u = i % w;
-            if fraction > 0.0 {
-                let peak = (u.saturating_sub(reach_cols)..=u + reach_cols)
-                    .filter_map(|c| column_peak.get(&(label[i], c)))
-                    .fold(0.0f32, |a, &(b, _)| a.max(b));
-                if c.height < fraction * peak {
-                    return None;
-                }
-            }
             // The farthest columns of the chain within reach on each side (this crest where none).
             let row_at = |col: usize| column_peak.get(&(label[i], col)).map(|&(_, r)| r);
             let left = (u.saturating_sub(tangent_cols)..u)
@@ -349,6 +342,17 @@ pub fn crests_in_image(
             } else {
                 0.0
             };
+            if fraction > 0.0 {
+                // LOCAL_PEAK_REACH_MM along the chain: fewer columns where it runs steeply.
+                let slope_mm = row_slope * pixel_mm[1] / pixel_mm[0];
+                let reach = (reach_cols as f64 / slope_mm.hypot(1.0)).round() as usize;
+                let peak = (u.saturating_sub(reach)..=u + reach)
+                    .filter_map(|c| column_peak.get(&(label[i], c)))
+                    .fold(0.0f32, |a, &(b, _)| a.max(b));
+                if c.height < fraction * peak {
+                    return None;
+                }
+            }
             Some(ImageCrest {
                 column: c.column,
                 row: c.row,
@@ -815,6 +819,54 @@ mod tests {
             last(&halved),
             last(&all)
         );
+    }
+
+    /// Crests of an echo line tilted `tilt_deg` from the image's rows, starting at pixel (20, 20) and
+    /// falling by 0.6 per mm along the line from 250 grey over a background of 15: the distances
+    /// (mm) along the line of the crests found on it.
+    fn crests_along_a_fading_line(tilt_deg: f64) -> Vec<f64> {
+        let (w, h) = (120, 120);
+        let start = [20.0, 20.0];
+        let t = [tilt_deg.to_radians().cos(), tilt_deg.to_radians().sin()];
+        let normal = [-t[1], t[0]];
+        let line = |u: f64, v: f64| {
+            let d = [u - start[0], v - start[1]];
+            let along_mm = (d[0] * t[0] + d[1] * t[1]) * PIXEL_MM[0];
+            let across_mm = (d[0] * normal[0] + d[1] * normal[1]) * PIXEL_MM[0];
+            (along_mm, across_mm)
+        };
+        let mut image = vec![15.0f32; w * h];
+        for v in 0..h {
+            for u in 0..w {
+                let (along_mm, across_mm) = line(u as f64, v as f64);
+                if (0.0..=6.0).contains(&along_mm) {
+                    let height = 250.0 * 0.6f64.powf(along_mm);
+                    image[v * w + u] +=
+                        (height * (-across_mm * across_mm / (2.0 * 0.09)).exp()) as f32;
+                }
+            }
+        }
+        crests_in_image(&image, w, h, PIXEL_MM, &CrestOptions::default())
+            .iter()
+            .map(|c| line(c.column, c.row))
+            .filter(|(_, across_mm)| across_mm.abs() < 0.2)
+            .map(|(along_mm, _)| along_mm)
+            .collect()
+    }
+
+    #[test]
+    fn a_steep_echo_is_compared_with_its_peak_along_its_line_not_across_the_beam() {
+        // Falling by 0.6 per mm, the echo never drops to half of what it was 1 mm back along its line.
+        // At 55 degrees, 1 mm across the beam is 1.74 mm along the line (0.6^1.74 = 0.41): compared
+        // across the beam, every crest past 1.4 mm from the line's start would be dropped.
+        let within = |found: &[f64], lo: f64, hi: f64| {
+            found.iter().filter(|&&s| (lo..=hi).contains(&s)).count()
+        };
+        let level = crests_along_a_fading_line(0.0);
+        let steep = crests_along_a_fading_line(55.0);
+        // 2-4.5 mm along the line: 12 columns of the level line, 7 of the steep one.
+        assert!(within(&level, 2.0, 4.5) >= 10, "{level:?}");
+        assert!(within(&steep, 2.0, 4.5) >= 6, "{steep:?}");
     }
 
     #[test]
