@@ -10,10 +10,14 @@
 #   --out DIR     meshes, logs and compare JSON; default target/independent-bench
 #   --shapes      which phantoms (default "duck hand")
 #   --routes      rbf = `extract` defaults (+ EXTRA ARGS), voxel = `extract --method voxel` (default both)
+#   --by-angle    also print, per phantom, where its walls are lost per band of angle to the beam (issue #26
+#                 item 6): `examples/wall_by_angle.rs` on the sweep, its truth and the rbf mesh (its band,
+#                 samples and crests are those of extract's defaults, whatever the EXTRA ARGS)
 #   after --       extra arguments for the rbf route's `extract`, e.g. `-- --sheet iso`
 # Environment: ECHOSURF (binary; default target/release/echosurf, built when missing), USPHANTOM_PYTHON (a
 # python with numpy scipy scikit-image trimesh; default: a venv created in target/usphantom-venv from PyPI),
-# INDEP_DATA (as --data).
+# INDEP_DATA (as --data), WALL_BY_ANGLE (the example's binary; default
+# target/release/examples/wall_by_angle, built when missing).
 #
 # The duck's truth is truth_outer.stl + truth_inner.stl concatenated into one binary STL (compare takes one
 # truth). Their normals point inward; the swept-facing score uses |cos| between the truth normal and the beam
@@ -26,14 +30,16 @@ out=$root/target/independent-bench
 shapes="duck hand"
 routes="rbf voxel"
 extra=()
+by_angle=0
 while [ $# -gt 0 ]; do
     case "$1" in
         --data) data=$2; shift 2 ;;
         --out) out=$2; shift 2 ;;
         --shapes) shapes=$2; shift 2 ;;
         --routes) routes=$2; shift 2 ;;
+        --by-angle) by_angle=1; shift ;;
         --) shift; extra=("$@"); break ;;
-        -h|--help) sed -n '2,20p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,24p' "$0"; exit 0 ;;
         *) echo "independent_bench.sh: unknown argument '$1' (see --help)" >&2; exit 2 ;;
     esac
 done
@@ -49,6 +55,10 @@ if [ ! -x "$echosurf" ]; then
     (cd "$root" && cargo build --release -p echosurf-cli)
 fi
 generator=$root/../shared/tools/usphantom.py
+wall_by_angle=${WALL_BY_ANGLE:-$root/target/release/examples/wall_by_angle}
+if [ "$by_angle" -eq 1 ] && [ ! -x "$wall_by_angle" ]; then
+    (cd "$root" && cargo build --release -p echosurf-bench --example wall_by_angle)
+fi
 
 python_for_generator() {
     if [ -n "${USPHANTOM_PYTHON:-}" ]; then
@@ -175,4 +185,20 @@ echo "|---|---|---|---|---|---|---|---|---|---|"
 for r in "${rows[@]}"; do echo "$r"; done
 echo
 for v in "${verdicts[@]}"; do echo "$v"; done
+if [ "$by_angle" -eq 1 ]; then
+    for shape in $shapes; do
+        mesh=$out/${shape}_rbf.ply
+        [ -f "$mesh" ] || continue
+        dir=$data/$shape
+        truth_files=()
+        for f in $(truths_of "$shape"); do truth_files+=("$dir/$f"); done
+        echo
+        echo "$shape, per band of angle between wall and beam (shares of each frame's cut through the truth):"
+        echo
+        if ! "$wall_by_angle" "$dir/$shape.mha" "$dir/${shape}_config.xml" "${truth_files[@]}" --mesh "$mesh"; then
+            echo "independent_bench.sh: wall_by_angle failed for $shape" >&2
+            status=1
+        fi
+    done
+fi
 exit $status
