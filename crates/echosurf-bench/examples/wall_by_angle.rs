@@ -19,6 +19,7 @@ use echosurf::metrics::TriangleBvh;
 use echosurf::pipeline::{self, ExtractOptions};
 use echosurf::progress::NoProgress;
 use echosurf::resources::StageMeter;
+use echosurf::spatial::PointBuckets;
 use glam::DVec3;
 use std::collections::HashMap;
 
@@ -36,36 +37,6 @@ struct Tally {
     near_fit_sample: usize,
     near_crest: usize,
     near_mesh: usize,
-}
-
-/// Points in 1 mm cells, for "is a point within 1 mm".
-struct MmGrid(HashMap<[i64; 3], Vec<DVec3>>);
-
-impl MmGrid {
-    fn new(points: &[DVec3]) -> MmGrid {
-        let mut cells: HashMap<[i64; 3], Vec<DVec3>> = HashMap::new();
-        for p in points {
-            cells.entry(Self::cell(*p)).or_default().push(*p);
-        }
-        MmGrid(cells)
-    }
-
-    fn cell(p: DVec3) -> [i64; 3] {
-        p.floor().as_i64vec3().to_array()
-    }
-
-    fn contains(&self, x: DVec3) -> bool {
-        let [i, j, k] = Self::cell(x);
-        (-1..=1).any(|a| {
-            (-1..=1).any(|b| {
-                (-1..=1).any(|c| {
-                    self.0
-                        .get(&[i + a, j + b, k + c])
-                        .is_some_and(|v| v.iter().any(|p| p.distance_squared(x) <= 1.0))
-                })
-            })
-        })
-    }
 }
 
 fn env_f64(key: &str, default: f64) -> f64 {
@@ -139,8 +110,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .map(|(p, _)| *p)
             .collect()
     };
-    let kept = MmGrid::new(&above(&prepared.all));
-    let fitted = MmGrid::new(&above(&prepared.samples));
+    let kept = PointBuckets::new(&above(&prepared.all), 1.0);
+    let fitted = PointBuckets::new(&above(&prepared.samples), 1.0);
+    let within_1mm =
+        |points: &Option<PointBuckets>, x: DVec3| points.as_ref().is_some_and(|b| b.contains(x));
     let crests = echosurf::segment::crests::echo_crests(
         &sequence,
         &prepared.poses,
@@ -148,15 +121,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         options.segment.detect_data_region,
         &options.image_crests.crest,
     )?;
-    let crest_grid: HashMap<usize, MmGrid> = crests
+    let crest_points: HashMap<usize, PointBuckets> = crests
         .iter()
-        .map(|f| {
+        .filter_map(|f| {
             let points: Vec<DVec3> = f
                 .crests
                 .iter()
                 .map(|c| io::sequence::pixel_to_world(&f.image_to_world, c.column, c.row))
                 .collect();
-            (f.frame_index, MmGrid::new(&points))
+            Some((f.frame_index, PointBuckets::new(&points, 1.0)?))
         })
         .collect();
     let mesh = mesh_path
@@ -195,7 +168,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 _ => continue,
             };
             let angle = normal.dot(beam).abs().min(1.0).acos().to_degrees();
-            let band = BAND_EDGES_DEG.iter().position(|&e| angle < e).unwrap_or(5);
+            let band = BAND_EDGES_DEG
+                .iter()
+                .position(|&e| angle < e)
+                .unwrap_or(BAND_EDGES_DEG.len() - 1);
             let [ua, va] = plane.pixel_of(a);
             let [ub, vb] = plane.pixel_of(b);
             let steps = ((ub - ua).hypot(vb - va) * 2.0).ceil().max(1.0) as usize;
@@ -216,11 +192,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 tally.in_band += in_band as usize;
                 tally.echoed_in_band += (echoed && in_band) as usize;
                 let x = plane.world_of([u, v]);
-                tally.near_kept_sample += kept.contains(x) as usize;
-                tally.near_fit_sample += fitted.contains(x) as usize;
-                tally.near_crest += crest_grid
+                tally.near_kept_sample += within_1mm(&kept, x) as usize;
+                tally.near_fit_sample += within_1mm(&fitted, x) as usize;
+                tally.near_crest += crest_points
                     .get(&pose.frame_index)
-                    .is_some_and(|g| g.contains(x)) as usize;
+                    .is_some_and(|b| b.contains(x)) as usize;
                 if let Some(bvh) = &mesh_bvh {
                     tally.near_mesh +=
                         bvh.nearest(x).is_some_and(|n| n.distance_mm <= 1.0) as usize;

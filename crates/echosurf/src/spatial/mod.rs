@@ -24,6 +24,6 @@ mod triangle_bvh;
 
 pub(crate) use box_tree::BoxTree;
 pub(crate) use kdtree::KdTree;
-pub(crate) use point_buckets::PointBuckets;
+pub use point_buckets::PointBuckets;
 pub use triangle::{TriangleFeature, closest_feature_on_triangle, closest_point_on_triangle};
 pub use triangle_bvh::{Nearest, TriangleBvh};

@@ -9,7 +9,7 @@ use super::cell_grid::{CELL_AXIS_MAX, pack_cell};
 /// Points bucketed into cubes of side `radius`: a query looks at the 27 buckets around the point.
 /// Points are stored sorted by bucket key, so the structure is two flat arrays.
 #[derive(Debug, Clone)]
-pub(crate) struct PointBuckets {
+pub struct PointBuckets {
     radius_mm: f64,
     origin_mm: DVec3,
     /// Sorted bucket keys, one per non-empty bucket, and where its points start in `points`.
@@ -21,9 +21,9 @@ pub(crate) struct PointBuckets {
 }
 
 impl PointBuckets {
-    /// `None` when there are no (finite) trust points: no clipping. Bucket coordinates beyond
-    /// [`CELL_AXIS_MAX`] are clamped (they only merge far buckets, which stays correct since points
-    /// are compared exactly).
+    /// `None` when there are no (finite) trust points: no clipping. Bucket coordinates beyond the cell
+    /// grid's `CELL_AXIS_MAX` are clamped (they only merge far buckets, which stays correct since
+    /// points are compared exactly).
     pub fn new(points: &[DVec3], radius_mm: f64) -> Option<PointBuckets> {
         let finite: Vec<(u32, DVec3)> = points
             .iter()
