@@ -8,8 +8,9 @@
 //! (square root and division are correctly rounded; nothing is fused), so results are bit-identical on
 //! every machine whatever the instruction set.
 
-// The crate's only unsafe code: calling the instruction-set variants after the runtime check, and their
-// unaligned vector loads and stores, each bounded by the block arithmetic next to it.
+// The crate's unsafe code is here and in surface/sheet_sums.rs: calling the instruction-set variants
+// after the runtime check, and their unaligned vector loads and stores, each bounded by the block
+// arithmetic next to it.
 #![allow(unsafe_code)]
 
 use glam::DVec3;

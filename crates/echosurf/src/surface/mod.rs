@@ -14,6 +14,7 @@ mod mc;
 mod ridge;
 mod rmt;
 mod sheet;
+mod sheet_sums;
 
 /// One bisection step for every active bracket `(t_a, v_a, t_b, v_b)` (parameters and field values
 /// less the level at both ends): the midpoint's value `mid_values[m]` replaces the end of its sign.

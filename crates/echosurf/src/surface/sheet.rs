@@ -15,6 +15,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::sheet_sums::{LaneSums, SheetPoints, SumShape, Sums, add_run};
 use super::{ScalarField, SurfaceDomain, SurfaceOptions, SurfaceStats};
 use crate::Result;
 use crate::mesh::Mesh;
@@ -186,12 +187,12 @@ fn merge_close_points(points: &[DVec3], normals: &[DVec3], cell_mm: f64) -> Merg
 
 /// The implicit surface of oriented points (see the module docs).
 pub(crate) struct OrientedPointField {
-    /// The points (in `grid`'s bucket order, [`PointBuckets::sorted_points`]) and their unit normals in
-    /// the same order, so that [`OrientedPointField::at`] reads each run of neighbours as two slices.
+    /// The points in `grid`'s bucket order ([`PointBuckets::sorted_points`]), so that
+    /// [`OrientedPointField::at`] reads each run of neighbours as slices.
     grid: PointBuckets,
-    normals: Vec<DVec3>,
-    /// How many given points each point stands for ([`merge_close_points`]), in the same order.
-    counts: Vec<f64>,
+    /// The same points with their unit normals and how many given points each stands for
+    /// ([`merge_close_points`]), as the SoA slices the sums read.
+    soa: SheetPoints,
     /// The given (unmerged) points, for whether `x` lies within reach of one: merging must not pull
     /// the sheet's rims in.
     reach_grid: PointBuckets,
@@ -242,12 +243,12 @@ impl OrientedPointField {
         let merged = merge_close_points(points, normals, merge_cell_mm);
         let grid = PointBuckets::new(&merged.points, support)?;
         let order = grid.original_indices();
-        let normals = order.iter().map(|&i| merged.normals[i as usize]).collect();
-        let counts = order.iter().map(|&i| merged.counts[i as usize]).collect();
+        let normals: Vec<DVec3> = order.iter().map(|&i| merged.normals[i as usize]).collect();
+        let counts: Vec<f64> = order.iter().map(|&i| merged.counts[i as usize]).collect();
+        let soa = SheetPoints::new(grid.sorted_points(), &normals, &counts);
         Some(OrientedPointField {
             grid,
-            normals,
-            counts,
+            soa,
             reach_grid,
             smoothing_mm,
             reach_mm,
@@ -273,48 +274,30 @@ impl OrientedPointField {
     /// [`OrientedPointField::values_and_gradients`]); NaN beyond reach. Sums over the points
     /// within the support in the grid's visiting order ([`PointBuckets::visit_within`]'s).
     fn at(&self, x: DVec3) -> (f64, DVec3) {
-        let inv_h2 = 1.0 / (self.smoothing_mm * self.smoothing_mm);
-        let reach2 = self.reach_mm * self.reach_mm;
-        let bridge2 = self.bridge_mm * self.bridge_mm;
-        let support2 = (SUPPORT_RADII * self.smoothing_mm).powi(2);
-        let (mut weight, mut value, mut value2, mut normal) = (0.0, 0.0, 0.0, DVec3::ZERO);
-        // Sums of w_i (x - p_i) . n_i (x - p_i) and w_i (x - p_i), for the gradient.
-        let (mut weighted_along_offsets, mut weighted_offsets) = (DVec3::ZERO, DVec3::ZERO);
+        let shape = SumShape {
+            inv_h2: 1.0 / (self.smoothing_mm * self.smoothing_mm),
+            support2: (SUPPORT_RADII * self.smoothing_mm).powi(2),
+            reach2: self.reach_mm * self.reach_mm,
+            bridge2: self.bridge_mm * self.bridge_mm,
+        };
+        let inv_h2 = shape.inv_h2;
         let within_reach = self.reach_grid.contains(x);
-        // Unit in-plane directions from the points that could bridge to `x`, and their count.
-        let (mut around, mut bridging) = (DVec3::ZERO, 0.0);
-        let points = self.grid.sorted_points();
+        // Beyond reach, the points that could bridge to `x` are summed too.
+        let mut lanes = LaneSums::default();
         self.grid.runs_around(x, |run| {
-            for ((&p, &n), &count) in points[run.clone()]
-                .iter()
-                .zip(&self.normals[run.clone()])
-                .zip(&self.counts[run])
-            {
-                let d = x - p;
-                let d2 = d.length_squared();
-                if d2 > support2 {
-                    continue;
-                }
-                let along = d.dot(n);
-                if !within_reach && along * along <= reach2 {
-                    let across = d - n * along;
-                    if across.length_squared() <= bridge2
-                        && let Some(u) = across.try_normalize()
-                    {
-                        around += count * u;
-                        bridging += count;
-                    }
-                }
-                let w = count * (-d2 * inv_h2).exp();
-                weight += w;
-                value += w * along;
-                value2 += w * along * along;
-                normal += w * n;
-                weighted_along_offsets += (w * along) * d;
-                weighted_offsets += w * d;
-            }
+            add_run(x, &self.soa, run, shape, !within_reach, &mut lanes);
             true
         });
+        let Sums {
+            weight,
+            value,
+            value2,
+            normal,
+            along_offsets: weighted_along_offsets,
+            offsets: weighted_offsets,
+            around,
+            bridging,
+        } = lanes.reduce();
         let bridged = || {
             bridging >= 2.0
                 && around.length() <= BRIDGE_MAX_IMBALANCE * bridging
