@@ -4,7 +4,7 @@
 
 use glam::DVec3;
 
-use super::cell_grid::{CELL_AXIS_MAX, pack_cell};
+use super::cell_grid::{CELL_AXIS_MAX, pack_cell, unpack_cell};
 
 /// Points bucketed into cubes of side `radius`: a query looks at the 27 buckets around the point.
 /// Points are stored sorted by bucket key, so the structure is two flat arrays.
@@ -18,6 +18,60 @@ pub struct PointBuckets {
     points: Vec<DVec3>,
     /// Index of each (sorted) point in the caller's slice.
     original: Vec<u32>,
+    /// Where each (y, z) row of buckets starts in `bucket_keys`, when the grid is compact enough.
+    rows: Option<RowIndex>,
+}
+
+/// The first bucket of every (y, z) row of a grid whose bucket coordinates start at zero:
+/// `starts[z * rows_y + y]` up to the next entry. A query searches its row's few buckets instead of
+/// all the keys.
+#[derive(Debug, Clone)]
+struct RowIndex {
+    rows_y: i64,
+    rows_z: i64,
+    starts: Vec<u32>,
+}
+
+/// A row index is built when it has at most this many rows per non-empty bucket (plus a few
+/// thousand): points spread thinly over a large box search all the sorted keys instead.
+const MAX_ROWS_PER_BUCKET: usize = 8;
+
+impl RowIndex {
+    fn new(bucket_keys: &[u64]) -> Option<RowIndex> {
+        let (mut rows_y, mut rows_z) = (0i64, 0i64);
+        for &k in bucket_keys {
+            let [_, y, z] = unpack_cell(k);
+            rows_y = rows_y.max(y as i64 + 1);
+            rows_z = rows_z.max(z as i64 + 1);
+        }
+        let rows = rows_y as u128 * rows_z as u128;
+        if rows > (MAX_ROWS_PER_BUCKET * bucket_keys.len() + 4096) as u128 {
+            return None;
+        }
+        let rows = rows as usize;
+        let mut starts = vec![0u32; rows + 1];
+        for &k in bucket_keys {
+            let [_, y, z] = unpack_cell(k);
+            starts[(z as i64 * rows_y + y as i64) as usize + 1] += 1;
+        }
+        for r in 0..rows {
+            starts[r + 1] += starts[r];
+        }
+        Some(RowIndex {
+            rows_y,
+            rows_z,
+            starts,
+        })
+    }
+
+    /// The buckets of row (y, z), both at least zero (empty outside the grid).
+    fn row(&self, y: i64, z: i64) -> std::ops::Range<usize> {
+        if y >= self.rows_y || z >= self.rows_z {
+            return 0..0;
+        }
+        let r = (z * self.rows_y + y) as usize;
+        self.starts[r] as usize..self.starts[r + 1] as usize
+    }
 }
 
 impl PointBuckets {
@@ -44,6 +98,7 @@ impl PointBuckets {
             bucket_starts: Vec::new(),
             points: Vec::new(),
             original: Vec::new(),
+            rows: None,
         };
         let mut keyed: Vec<(u64, u32, DVec3)> = finite
             .iter()
@@ -59,6 +114,7 @@ impl PointBuckets {
             region.original.push(*original);
         }
         region.bucket_starts.push(keyed.len() as u32);
+        region.rows = RowIndex::new(&region.bucket_keys);
         Some(region)
     }
 
@@ -120,8 +176,14 @@ impl PointBuckets {
                     continue;
                 }
                 let (lo, hi) = (self.key([x_lo, y, z]), self.key([x_hi, y, z]));
-                let first = self.bucket_keys.partition_point(|&k| k < lo);
-                let last = first + self.bucket_keys[first..].partition_point(|&k| k <= hi);
+                let row = match &self.rows {
+                    Some(rows) => rows.row(y, z),
+                    None => 0..self.bucket_keys.len(),
+                };
+                let keys = &self.bucket_keys[row.clone()];
+                let first = keys.partition_point(|&k| k < lo);
+                let last = row.start + first + keys[first..].partition_point(|&k| k <= hi);
+                let first = row.start + first;
                 if first == last {
                     continue;
                 }
@@ -181,6 +243,27 @@ mod tests {
                 .filter(|&i| pts[i].distance(q) <= 1.2)
                 .collect();
             assert_eq!(seen, brute);
+        }
+    }
+
+    #[test]
+    fn points_spread_thinly_over_a_large_box_are_found_without_the_row_index() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        // Two clusters 50 m apart: their rows would outnumber the buckets by far.
+        let mut pts = random_points(&mut rng, 200, 6.0, 0.0);
+        pts.extend(random_points(&mut rng, 200, 6.0, -50_000.0));
+        let spread = PointBuckets::new(&pts, 0.5).unwrap();
+        assert!(spread.rows.is_none());
+        let compact = PointBuckets::new(&pts[..200], 0.5).unwrap();
+        assert!(compact.rows.is_some());
+        for _ in 0..2000 {
+            let near = DVec3::new(rng.random(), rng.random(), rng.random()) * 7.0 - 0.5;
+            for q in [near, near + 50_000.0] {
+                let brute = pts.iter().any(|p| p.distance(q) <= 0.5);
+                assert_eq!(spread.contains(q), brute, "{q}");
+            }
+            let brute = pts[..200].iter().any(|p| p.distance(near) <= 0.5);
+            assert_eq!(compact.contains(near), brute, "{near}");
         }
     }
 

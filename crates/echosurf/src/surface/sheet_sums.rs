@@ -181,17 +181,20 @@ impl Block {
     }
 }
 
-/// `exp(-t)` for `t >= 0`, to about 2 ulp; arguments beyond 700 are taken as 700. `2^-k` times the
-/// degree-13 Taylor polynomial of `exp(r)`, `r = -t + k ln 2` within ln 2 / 2 of zero.
+/// `exp(-t)` for `t >= 0`, to a few ulp; arguments beyond 700 are taken as 700. `2^k` times the
+/// degree-13 Taylor polynomial of `exp(r)`, `r = -t - k ln 2` within ln 2 / 2 of zero.
 #[inline(always)]
 fn exp_neg_scalar(t: f64) -> f64 {
     let x = 0.0 - t.min(700.0);
     let k = (x * std::f64::consts::LOG2_E).round_ties_even();
     let r = (x - k * LN2_HI) - k * LN2_LO;
-    let mut p = EXP_TAYLOR[0];
-    for &c in &EXP_TAYLOR[1..] {
-        p = p * r + c;
-    }
+    // Estrin's scheme: pairs, then pairs of pairs, so the chain of dependent operations is short.
+    let c = &EXP_TAYLOR;
+    let (r2, pair) = (r * r, |k: usize| c[k] + c[k + 1] * r);
+    let r4 = r2 * r2;
+    let low = (pair(0) + pair(2) * r2) + (pair(4) + pair(6) * r2) * r4;
+    let high = (pair(8) + pair(10) * r2) + pair(12) * r4;
+    let p = low + high * (r4 * r4);
     let scale = f64::from_bits((k + EXPONENT_MAGIC).to_bits() << 52);
     p * scale
 }
@@ -204,22 +207,22 @@ const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
 /// by 52 are the bits of `2^k`.
 const EXPONENT_MAGIC: f64 = 4_503_599_627_371_519.0;
 
-/// 1/13!, 1/12!, ..., 1/1!, 1: Horner's order.
+/// 1/0!, 1/1!, ..., 1/13!: the Taylor coefficients of `exp` at zero.
 const EXP_TAYLOR: [f64; 14] = [
-    1.0 / 6_227_020_800.0,
-    1.0 / 479_001_600.0,
-    1.0 / 39_916_800.0,
-    1.0 / 3_628_800.0,
-    1.0 / 362_880.0,
-    1.0 / 40_320.0,
-    1.0 / 5_040.0,
-    1.0 / 720.0,
-    1.0 / 120.0,
-    1.0 / 24.0,
-    1.0 / 6.0,
+    1.0,
+    1.0,
     0.5,
-    1.0,
-    1.0,
+    1.0 / 6.0,
+    1.0 / 24.0,
+    1.0 / 120.0,
+    1.0 / 720.0,
+    1.0 / 5_040.0,
+    1.0 / 40_320.0,
+    1.0 / 362_880.0,
+    1.0 / 3_628_800.0,
+    1.0 / 39_916_800.0,
+    1.0 / 479_001_600.0,
+    1.0 / 6_227_020_800.0,
 ];
 
 /// [`add_run`] as scalar code, lane by lane in the vector variant's operation order.
@@ -316,10 +319,17 @@ mod x86 {
             _mm256_sub_pd(x, _mm256_mul_pd(k, _mm256_set1_pd(LN2_HI))),
             _mm256_mul_pd(k, _mm256_set1_pd(LN2_LO)),
         );
-        let mut p = _mm256_set1_pd(EXP_TAYLOR[0]);
-        for &c in &EXP_TAYLOR[1..] {
-            p = _mm256_add_pd(_mm256_mul_pd(p, r), _mm256_set1_pd(c));
-        }
+        let (add, mul, c) = (_mm256_add_pd, _mm256_mul_pd, |k: usize| {
+            _mm256_set1_pd(EXP_TAYLOR[k])
+        });
+        let (r2, pair) = (mul(r, r), |k: usize| add(c(k), mul(c(k + 1), r)));
+        let r4 = mul(r2, r2);
+        let low = add(
+            add(pair(0), mul(pair(2), r2)),
+            mul(add(pair(4), mul(pair(6), r2)), r4),
+        );
+        let high = add(add(pair(8), mul(pair(10), r2)), mul(pair(12), r4));
+        let p = add(low, mul(high, mul(r4, r4)));
         let bits = _mm256_castpd_si256(_mm256_add_pd(k, _mm256_set1_pd(EXPONENT_MAGIC)));
         let scale = _mm256_castsi256_pd(_mm256_slli_epi64::<52>(bits));
         _mm256_mul_pd(p, scale)
