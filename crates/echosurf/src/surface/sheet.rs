@@ -196,9 +196,8 @@ pub(crate) struct OrientedPointField {
     /// The given (unmerged) points, for whether `x` lies within reach of one: merging must not pull
     /// the sheet's rims in.
     reach_grid: PointBuckets,
-    smoothing_mm: f64,
-    reach_mm: f64,
-    bridge_mm: f64,
+    /// The weights' width and support and the bridging test's reach and bridge, squared.
+    shape: SumShape,
 }
 
 impl OrientedPointField {
@@ -246,13 +245,17 @@ impl OrientedPointField {
         let normals: Vec<DVec3> = order.iter().map(|&i| merged.normals[i as usize]).collect();
         let counts: Vec<f64> = order.iter().map(|&i| merged.counts[i as usize]).collect();
         let soa = SheetPoints::new(grid.sorted_points(), &normals, &counts);
+        let bridge_mm = bridge_mm.min(support);
         Some(OrientedPointField {
             grid,
             soa,
             reach_grid,
-            smoothing_mm,
-            reach_mm,
-            bridge_mm: bridge_mm.min(support),
+            shape: SumShape {
+                inv_h2: 1.0 / (smoothing_mm * smoothing_mm),
+                support2: support.powi(2),
+                reach2: reach_mm * reach_mm,
+                bridge2: bridge_mm * bridge_mm,
+            },
         })
     }
 
@@ -274,12 +277,7 @@ impl OrientedPointField {
     /// [`OrientedPointField::values_and_gradients`]); NaN beyond reach. Sums over the points
     /// within the support in the grid's visiting order ([`PointBuckets::visit_within`]'s).
     fn at(&self, x: DVec3) -> (f64, DVec3) {
-        let shape = SumShape {
-            inv_h2: 1.0 / (self.smoothing_mm * self.smoothing_mm),
-            support2: (SUPPORT_RADII * self.smoothing_mm).powi(2),
-            reach2: self.reach_mm * self.reach_mm,
-            bridge2: self.bridge_mm * self.bridge_mm,
-        };
+        let shape = self.shape;
         let inv_h2 = shape.inv_h2;
         let within_reach = self.reach_grid.contains(x);
         // Beyond reach, the points that could bridge to `x` are summed too.

@@ -20,15 +20,15 @@ const LANES: usize = 4;
 
 /// Oriented points as SoA slices of one length: position, unit normal and how many given points each
 /// stands for.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 pub(super) struct SheetPoints {
-    pub(super) x: Vec<f64>,
-    pub(super) y: Vec<f64>,
-    pub(super) z: Vec<f64>,
-    pub(super) nx: Vec<f64>,
-    pub(super) ny: Vec<f64>,
-    pub(super) nz: Vec<f64>,
-    pub(super) count: Vec<f64>,
+    x: Vec<f64>,
+    y: Vec<f64>,
+    z: Vec<f64>,
+    nx: Vec<f64>,
+    ny: Vec<f64>,
+    nz: Vec<f64>,
+    count: Vec<f64>,
 }
 
 impl SheetPoints {
@@ -42,6 +42,19 @@ impl SheetPoints {
             nz: normals.iter().map(|n| n.z).collect(),
             count: counts.to_vec(),
         }
+    }
+
+    /// The slices of the points `run`.
+    fn slices(&self, run: std::ops::Range<usize>) -> Slices<'_> {
+        [
+            &self.x[run.clone()],
+            &self.y[run.clone()],
+            &self.z[run.clone()],
+            &self.nx[run.clone()],
+            &self.ny[run.clone()],
+            &self.nz[run.clone()],
+            &self.count[run],
+        ]
     }
 }
 
@@ -125,7 +138,7 @@ pub(super) fn add_run(
     bridging: bool,
     sums: &mut LaneSums,
 ) {
-    let slices = Block::slices(points, run);
+    let slices = points.slices(run);
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") {
@@ -150,35 +163,17 @@ pub(super) fn add_run(
 /// The SoA slices of a run: x, y, z, nx, ny, nz, count.
 type Slices<'a> = [&'a [f64]; 7];
 
-/// A run's last partial block, padded with points of no weight far from `x`.
-struct Block;
-
-impl Block {
-    fn slices(points: &SheetPoints, run: std::ops::Range<usize>) -> Slices<'_> {
-        let r = run;
-        [
-            &points.x[r.clone()],
-            &points.y[r.clone()],
-            &points.z[r.clone()],
-            &points.nx[r.clone()],
-            &points.ny[r.clone()],
-            &points.nz[r.clone()],
-            &points.count[r],
-        ]
-    }
-
-    /// The points from `from` (fewer than [`LANES`]), the rest of the block far from `x` with no
-    /// count and no normal: outside any support, they add zeros.
-    fn padded_tail(x: DVec3, s: Slices<'_>, from: usize) -> [[f64; LANES]; 7] {
-        let far = [x.x + 1.0e6, x.y, x.z, 0.0, 0.0, 0.0, 0.0];
-        let mut block = [[0.0; LANES]; 7];
-        for (k, column) in block.iter_mut().enumerate() {
-            for (l, value) in column.iter_mut().enumerate() {
-                *value = s[k].get(from + l).copied().unwrap_or(far[k]);
-            }
+/// A run's last partial block: the points from `from` (fewer than [`LANES`]), the rest of the block
+/// far from `x` with no count and no normal (outside any support, they add zeros).
+fn padded_tail(x: DVec3, s: Slices<'_>, from: usize) -> [[f64; LANES]; 7] {
+    let far = [x.x + 1.0e6, x.y, x.z, 0.0, 0.0, 0.0, 0.0];
+    let mut block = [[0.0; LANES]; 7];
+    for (k, column) in block.iter_mut().enumerate() {
+        for (l, value) in column.iter_mut().enumerate() {
+            *value = s[k].get(from + l).copied().unwrap_or(far[k]);
         }
-        block
     }
+    block
 }
 
 /// `exp(-t)` for `t >= 0`, to a few ulp; arguments beyond 700 are taken as 700. `2^k` times the
@@ -242,7 +237,7 @@ fn add_run_scalar<const BRIDGING_SUMS: bool>(
         j += LANES;
     }
     if full < n {
-        add_block_scalar::<BRIDGING_SUMS>(x, &Block::padded_tail(x, s, full), shape, sums);
+        add_block_scalar::<BRIDGING_SUMS>(x, &padded_tail(x, s, full), shape, sums);
     }
 }
 
@@ -253,20 +248,18 @@ fn add_block_scalar<const BRIDGING_SUMS: bool>(
     shape: SumShape,
     sums: &mut LaneSums,
 ) {
-    let d2 = |l: usize| {
-        let d = [x.x - b[0][l], x.y - b[1][l], x.z - b[2][l]];
-        (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2]
-    };
+    let offsets: [[f64; 3]; LANES] =
+        std::array::from_fn(|l| [x.x - b[0][l], x.y - b[1][l], x.z - b[2][l]]);
+    let squared: [f64; LANES] = offsets.map(|d| (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2]);
     // Most blocks of a run lie wholly beyond the support: they add nothing.
-    if !(0..LANES).any(|l| d2(l) <= shape.support2) {
+    if !squared.iter().any(|&d2| d2 <= shape.support2) {
         return;
     }
     let a = &mut sums.0;
     for l in 0..LANES {
-        let d = [x.x - b[0][l], x.y - b[1][l], x.z - b[2][l]];
+        let (d, d2) = (offsets[l], squared[l]);
         let n = [b[3][l], b[4][l], b[5][l]];
         let count = b[6][l];
-        let d2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2];
         let inside = d2 <= shape.support2;
         let along = (d[0] * n[0] + d[1] * n[1]) + d[2] * n[2];
         let e = exp_neg_scalar(d2 * shape.inv_h2);
@@ -365,7 +358,7 @@ mod x86 {
             j += LANES;
         }
         if full < n {
-            let tail = Block::padded_tail(x, s, full);
+            let tail = padded_tail(x, s, full);
             for (b, column) in block.iter_mut().zip(&tail) {
                 // SAFETY: each padded column holds LANES = 4 f64.
                 *b = unsafe { _mm256_loadu_pd(column.as_ptr()) };
@@ -566,7 +559,7 @@ mod tests {
                 let mut scalar = LaneSums::default();
                 for run in [0..13, 13..14, 14..77] {
                     add_run(q, &points, run.clone(), shape(), bridging, &mut dispatched);
-                    let slices = Block::slices(&points, run);
+                    let slices = points.slices(run);
                     if bridging {
                         add_run_scalar::<true>(q, slices, shape(), &mut scalar);
                     } else {
